@@ -1,0 +1,1 @@
+//! graspd service contract (see README.md).

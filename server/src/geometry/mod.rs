@@ -1,0 +1,6 @@
+//! Geometry the rest of the engine stands on: meshes, surface sampling,
+//! the virtual depth camera.
+
+pub mod mesh;
+
+pub use mesh::{Topology, TriMesh};

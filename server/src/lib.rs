@@ -1,0 +1,6 @@
+//! graspd: one-shot grasp transfer for multi-fingered hands.
+//!
+//! The engine (usable in-process without the daemon): see ARCHITECTURE.md at
+//! the repository root for the data flow from a point cloud to an action.
+
+pub mod geometry;
