@@ -1,6 +1,10 @@
 //! Geometry the rest of the engine stands on: meshes, surface sampling,
 //! the virtual depth camera.
 
+pub mod camera;
 pub mod mesh;
+pub mod sample;
 
+pub use camera::{DepthCamera, DepthNoise, Intrinsics, PartialView, Scene};
 pub use mesh::{Topology, TriMesh};
+pub use sample::{sample_points, SurfacePoint, SurfaceSampler};
