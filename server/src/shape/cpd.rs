@@ -1,0 +1,456 @@
+//! Coherent Point Drift (Myronenko & Song, 2010): rigid (with scale) and
+//! non-rigid registration of a moving point set Y onto data X.
+//!
+//! Our own implementation because it is the core of the product and the
+//! public ones fall short in the ways method.md lists: they store the dense
+//! M×N posterior (out of memory at tens of thousands of points), take β in
+//! absolute units (a shape space of metre-sized tools turns rigid), and run
+//! the full O(M³) solve every iteration.
+//!
+//! Both clouds are mapped by one similarity (the source's centroid and RMS
+//! radius) into normalised coordinates, so β, λ and the outlier weight mean the
+//! same thing for a mug and a hammer; results come back in the caller's units.
+
+use super::estep::{dot, initial_sigma2, EStep, Posteriors, P3};
+use super::kernel::{gaussian, LowRankKernel};
+use faer::prelude::*;
+use faer::Side;
+use nalgebra::{Matrix3, Point3, Vector3};
+use std::time::Instant;
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum CpdError {
+    #[error("{which} cloud is empty")]
+    Empty { which: &'static str },
+    #[error("{which} cloud has a non-finite coordinate at point {index}")]
+    NonFinite { which: &'static str, index: usize },
+    #[error("{which} cloud has all its points at one place (no extent to register)")]
+    Degenerate { which: &'static str },
+    #[error("invalid parameter {name} = {value}: {why}")]
+    BadParameter { name: &'static str, value: f64, why: &'static str },
+    #[error("the clouds lost all correspondence (every point an outlier); check units and overlap")]
+    NoCorrespondence,
+}
+
+/// Options shared by every CPD variant.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct EmOptions {
+    /// Outlier weight w in [0, 1).
+    pub w: f64,
+    pub max_iters: usize,
+    /// Stop when the relative change of the negative log-likelihood falls below this (0: run all iterations).
+    pub tol: f64,
+}
+
+impl Default for EmOptions {
+    fn default() -> Self {
+        Self { w: 0.1, max_iters: 150, tol: 1e-5 }
+    }
+}
+
+impl EmOptions {
+    fn validate(&self) -> Result<(), CpdError> {
+        if !(0.0..1.0).contains(&self.w) {
+            return Err(CpdError::BadParameter { name: "w", value: self.w, why: "must lie in [0, 1)" });
+        }
+        if !(self.tol >= 0.0) {
+            return Err(CpdError::BadParameter { name: "tol", value: self.tol, why: "must be ≥ 0" });
+        }
+        Ok(())
+    }
+}
+
+/// The similarity into CPD's normalised coordinates: p ↦ (p − centre) / scale.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Normalization {
+    pub centre: [f64; 3],
+    pub scale: f64,
+}
+
+impl Normalization {
+    /// Centroid and RMS radius of `pts`.
+    pub fn of(pts: &[P3]) -> Self {
+        let n = pts.len().max(1) as f64;
+        let c = pts.iter().fold([0.0; 3], |a, p| [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]);
+        let r2 = pts.iter().map(|p| super::estep::dist2(p, &c)).sum::<f64>() / n;
+        Self { centre: c, scale: r2.sqrt().max(1e-300) }
+    }
+    pub fn forward(&self, p: &P3) -> P3 {
+        let c = &self.centre;
+        [(p[0] - c[0]) / self.scale, (p[1] - c[1]) / self.scale, (p[2] - c[2]) / self.scale]
+    }
+    pub fn inverse(&self, p: &P3) -> P3 {
+        let c = &self.centre;
+        [p[0] * self.scale + c[0], p[1] * self.scale + c[1], p[2] * self.scale + c[2]]
+    }
+}
+
+pub fn to_p3(pts: &[Point3<f64>]) -> Vec<P3> {
+    pts.iter().map(|p| [p.x, p.y, p.z]).collect()
+}
+
+pub fn to_points(pts: &[P3]) -> Vec<Point3<f64>> {
+    pts.iter().map(|p| Point3::new(p[0], p[1], p[2])).collect()
+}
+
+/// Checks a cloud from outside: non-empty, finite, with extent.
+pub fn check_cloud(which: &'static str, pts: &[P3]) -> Result<(), CpdError> {
+    if pts.is_empty() {
+        return Err(CpdError::Empty { which });
+    }
+    if let Some(index) = pts.iter().position(|p| !p.iter().all(|x| x.is_finite())) {
+        return Err(CpdError::NonFinite { which, index });
+    }
+    let n = Normalization::of(pts);
+    let extent = pts.iter().map(|p| p.iter().fold(0.0f64, |a, x| a.max(x.abs()))).fold(0.0, f64::max);
+    if !(n.scale > 1e-12 * extent.max(1e-300)) || n.scale < 1e-9 {
+        return Err(CpdError::Degenerate { which });
+    }
+    Ok(())
+}
+
+/// How an EM run ended.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct EmReport {
+    pub iterations: usize,
+    pub converged: bool,
+    /// Final σ² in the caller's units (m²).
+    pub sigma2: f64,
+    pub elapsed_ms: f64,
+}
+
+// ---------------------------------------------------------------- rigid
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RigidOptions {
+    pub em: EmOptions,
+    /// Estimate a uniform scale too (similarity transform).
+    pub scale: bool,
+}
+
+impl Default for RigidOptions {
+    fn default() -> Self {
+        Self { em: EmOptions::default(), scale: true }
+    }
+}
+
+/// target ≈ scale · rotation · source + translation (caller's units).
+#[derive(Clone, Debug)]
+pub struct RigidResult {
+    pub rotation: Matrix3<f64>,
+    pub translation: Vector3<f64>,
+    pub scale: f64,
+    pub moved: Vec<Point3<f64>>,
+    pub report: EmReport,
+}
+
+pub fn rigid(source: &[Point3<f64>], target: &[Point3<f64>], opts: &RigidOptions) -> Result<RigidResult, CpdError> {
+    let t0 = Instant::now();
+    opts.em.validate()?;
+    let (ys, xs) = (to_p3(source), to_p3(target));
+    check_cloud("source", &ys)?;
+    check_cloud("target", &xs)?;
+    let norm = Normalization::of(&ys);
+    let y0: Vec<P3> = ys.iter().map(|p| norm.forward(p)).collect();
+    let x: Vec<P3> = xs.iter().map(|p| norm.forward(p)).collect();
+    let mut estep = EStep::new(&x);
+    let mut post = Posteriors::default();
+    let (mut r, mut t, mut s) = (Matrix3::identity(), Vector3::zeros(), 1.0);
+    let mut y = y0.clone();
+    let mut sigma2 = initial_sigma2(&x, &y);
+    let (mut prev, mut iterations, mut converged) = (f64::INFINITY, 0, false);
+    while iterations < opts.em.max_iters {
+        iterations += 1;
+        estep.run(&y, sigma2, opts.em.w, &mut post);
+        if !(post.np > 1e-9) {
+            return Err(CpdError::NoCorrespondence);
+        }
+        let step = weighted_similarity(&x, &y0, &post, opts.scale);
+        (r, t, s) = (step.rotation, step.translation, step.scale);
+        sigma2 = step.sigma2.max(1e-10);
+        for (yi, y0i) in y.iter_mut().zip(&y0) {
+            let p = s * (r * Vector3::from(*y0i)) + t;
+            *yi = [p.x, p.y, p.z];
+        }
+        let nll = post.neg_log_likelihood;
+        if opts.em.tol > 0.0 && ((prev - nll).abs() <= opts.em.tol * nll.abs().max(1e-12) || sigma2 <= 1e-10) {
+            converged = true;
+            break;
+        }
+        prev = nll;
+    }
+    // Back to caller units: x = n⁻¹(s R n(y) + t) ⇒ translation absorbs the centres.
+    let c = Vector3::from(norm.centre);
+    let translation = c + t * norm.scale - s * (r * c);
+    let moved = to_points(&y.iter().map(|p| norm.inverse(p)).collect::<Vec<_>>());
+    Ok(RigidResult {
+        rotation: r,
+        translation,
+        scale: s,
+        moved,
+        report: EmReport { iterations, converged, sigma2: sigma2 * norm.scale * norm.scale, elapsed_ms: t0.elapsed().as_secs_f64() * 1e3 },
+    })
+}
+
+pub struct SimilarityStep {
+    pub rotation: Matrix3<f64>,
+    pub translation: Vector3<f64>,
+    pub scale: f64,
+    pub sigma2: f64,
+}
+
+/// Closed-form weighted Procrustes of the M-step: the similarity minimising
+/// Σ P_mn ‖x_n − (s R y_m + t)‖², from the sufficient statistics only.
+pub fn weighted_similarity(x: &[P3], y: &[P3], post: &Posteriors, with_scale: bool) -> SimilarityStep {
+    let np = post.np;
+    let mut mu_x = Vector3::zeros();
+    for (xn, w) in x.iter().zip(&post.pt1) {
+        mu_x += Vector3::from(*xn) * *w;
+    }
+    mu_x /= np;
+    let mut mu_y = Vector3::zeros();
+    for (ym, w) in y.iter().zip(&post.p1) {
+        mu_y += Vector3::from(*ym) * *w;
+    }
+    mu_y /= np;
+    // A = Σ_m (PX_m − P1_m μx)(y_m − μy)ᵀ
+    let mut a = Matrix3::zeros();
+    let mut yy = 0.0;
+    for ((ym, px), p1) in y.iter().zip(&post.px).zip(&post.p1) {
+        let dy = Vector3::from(*ym) - mu_y;
+        a += (Vector3::from(*px) - mu_x * *p1) * dy.transpose();
+        yy += p1 * dy.norm_squared();
+    }
+    let mut xx = 0.0;
+    for (xn, w) in x.iter().zip(&post.pt1) {
+        xx += w * (Vector3::from(*xn) - mu_x).norm_squared();
+    }
+    let svd = a.svd(true, true);
+    let (u, vt) = (svd.u.unwrap_or_else(Matrix3::identity), svd.v_t.unwrap_or_else(Matrix3::identity));
+    let d = (u * vt).determinant().signum();
+    let c = Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, if d == 0.0 { 1.0 } else { d }));
+    let r = u * c * vt;
+    let tr = (a.transpose() * r).trace();
+    let s = if with_scale && yy > 0.0 { (tr / yy).max(1e-6) } else { 1.0 };
+    let t = mu_x - s * (r * mu_y);
+    let sigma2 = if with_scale { (xx - s * tr) / (3.0 * np) } else { (xx - 2.0 * tr + yy) / (3.0 * np) };
+    SimilarityStep { rotation: r, translation: t, scale: s, sigma2: sigma2.abs() }
+}
+
+// ------------------------------------------------------------ non-rigid
+
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct NonRigidOptions {
+    pub em: EmOptions,
+    /// Kernel width in units of the source's RMS radius.
+    pub beta: f64,
+    /// Smoothness weight λ.
+    pub lambda: f64,
+    /// Largest kernel rank kept (the low-rank factor stops earlier when the
+    /// spectrum has decayed below `rank_tol`).
+    pub max_rank: usize,
+    pub rank_tol: f64,
+    pub seed: u64,
+}
+
+impl Default for NonRigidOptions {
+    fn default() -> Self {
+        Self { em: EmOptions::default(), beta: 0.5, lambda: 2.0, max_rank: 300, rank_tol: 1e-6, seed: 0 }
+    }
+}
+
+impl NonRigidOptions {
+    fn validate(&self) -> Result<(), CpdError> {
+        self.em.validate()?;
+        if !(self.beta > 1e-4 && self.beta < 1e4) {
+            return Err(CpdError::BadParameter { name: "beta", value: self.beta, why: "relative kernel width must lie in (1e-4, 1e4)" });
+        }
+        if !(self.lambda > 0.0 && self.lambda.is_finite()) {
+            return Err(CpdError::BadParameter { name: "lambda", value: self.lambda, why: "must be positive" });
+        }
+        Ok(())
+    }
+}
+
+/// A Gaussian-kernel displacement field v(z) = G(z, C)·W around centres C,
+/// held in normalised coordinates. Defined for any point, not only the centres:
+/// that is what moves a demonstration's keypoints.
+#[derive(Clone, Debug)]
+pub struct DeformationField {
+    pub norm: Normalization,
+    /// Centres C in normalised coordinates.
+    pub centres: Vec<P3>,
+    /// Kernel weights W (M×3), normalised units.
+    pub weights: Mat<f64>,
+    /// Kernel width, normalised units.
+    pub beta: f64,
+}
+
+impl DeformationField {
+    /// Moves points given in the caller's units: z + v(z).
+    pub fn apply(&self, pts: &[P3]) -> Vec<P3> {
+        let zn: Vec<P3> = pts.iter().map(|p| self.norm.forward(p)).collect();
+        let g = gaussian(&zn, &self.centres, self.beta);
+        let v = &g * &self.weights;
+        zn.iter()
+            .enumerate()
+            .map(|(i, z)| self.norm.inverse(&[z[0] + v[(i, 0)], z[1] + v[(i, 1)], z[2] + v[(i, 2)]]))
+            .collect()
+    }
+}
+
+#[derive(Clone, Debug)]
+pub struct NonRigidResult {
+    pub moved: Vec<Point3<f64>>,
+    pub field: DeformationField,
+    pub kernel_rank: usize,
+    pub report: EmReport,
+}
+
+/// Non-rigid CPD of `source` onto `target`.
+pub fn non_rigid(source: &[Point3<f64>], target: &[Point3<f64>], opts: &NonRigidOptions) -> Result<NonRigidResult, CpdError> {
+    let ys = to_p3(source);
+    check_cloud("source", &ys)?;
+    opts.validate()?;
+    let norm = Normalization::of(&ys);
+    let y0: Vec<P3> = ys.iter().map(|p| norm.forward(p)).collect();
+    let kernel = LowRankKernel::new(&y0, opts.beta, opts.max_rank, opts.rank_tol, opts.seed);
+    non_rigid_with_kernel(&y0, norm, &kernel, target, opts)
+}
+
+/// Non-rigid CPD with a precomputed kernel factor for the normalised source
+/// `y0` (a shape-space build registers one canonical to many instances).
+pub fn non_rigid_with_kernel(
+    y0: &[P3],
+    norm: Normalization,
+    kernel: &LowRankKernel,
+    target: &[Point3<f64>],
+    opts: &NonRigidOptions,
+) -> Result<NonRigidResult, CpdError> {
+    let t0 = Instant::now();
+    opts.validate()?;
+    let xs = to_p3(target);
+    check_cloud("target", &xs)?;
+    let x: Vec<P3> = xs.iter().map(|p| norm.forward(p)).collect();
+    let m = y0.len();
+    let k = kernel.rank();
+    let mut estep = EStep::new(&x);
+    let mut post = Posteriors::default();
+    let mut y = y0.to_vec();
+    let mut w = Mat::<f64>::zeros(m, 3);
+    let mut sigma2 = initial_sigma2(&x, &y);
+    let xx: Vec<f64> = x.iter().map(|p| dot(p, p)).collect();
+    let (mut prev, mut iterations, mut converged) = (f64::INFINITY, 0, false);
+    let mut dpq = Mat::<f64>::zeros(m, k);
+    while iterations < opts.em.max_iters {
+        iterations += 1;
+        estep.run(&y, sigma2, opts.em.w, &mut post);
+        if !(post.np > 1e-9) {
+            return Err(CpdError::NoCorrespondence);
+        }
+        // M-step (Woodbury): W = (F − dP Q (sΛ⁻¹ + Qᵀ dP Q)⁻¹ Qᵀ F) / s,
+        // F = PX − dP·Y0, s = λσ². No division by P1, so unmatched points are fine.
+        let s = opts.lambda * sigma2;
+        let f = Mat::from_fn(m, 3, |i, d| post.px[i][d] - post.p1[i] * y0[i][d]);
+        for j in 0..k {
+            for i in 0..m {
+                dpq[(i, j)] = post.p1[i] * kernel.q[(i, j)];
+            }
+        }
+        let mut a = kernel.q.transpose() * &dpq;
+        for (j, l) in kernel.lambda.iter().enumerate() {
+            a[(j, j)] += s / l.max(1e-300);
+        }
+        let qtf = kernel.q.transpose() * &f;
+        let z = match a.llt(Side::Lower) {
+            Ok(llt) => llt.solve(&qtf),
+            Err(_) => a.partial_piv_lu().solve(&qtf),
+        };
+        w = (&f - &dpq * &z) * Scale(1.0 / s);
+        let gw = kernel.apply(w.as_ref());
+        for i in 0..m {
+            y[i] = [y0[i][0] + gw[(i, 0)], y0[i][1] + gw[(i, 1)], y0[i][2] + gw[(i, 2)]];
+        }
+        // σ² from the sufficient statistics.
+        let mut num: f64 = post.pt1.iter().zip(&xx).map(|(a, b)| a * b).sum();
+        for i in 0..m {
+            num += post.p1[i] * dot(&y[i], &y[i]) - 2.0 * dot(&post.px[i], &y[i]);
+        }
+        sigma2 = (num / (3.0 * post.np)).abs().max(1e-10);
+        let nll = post.neg_log_likelihood;
+        if opts.em.tol > 0.0 && ((prev - nll).abs() <= opts.em.tol * nll.abs().max(1e-12) || sigma2 <= 1e-10) {
+            converged = true;
+            break;
+        }
+        prev = nll;
+    }
+    let moved = to_points(&y.iter().map(|p| norm.inverse(p)).collect::<Vec<_>>());
+    Ok(NonRigidResult {
+        moved,
+        field: DeformationField { norm, centres: y0.to_vec(), weights: w, beta: opts.beta },
+        kernel_rank: k,
+        report: EmReport { iterations, converged, sigma2: sigma2 * norm.scale * norm.scale, elapsed_ms: t0.elapsed().as_secs_f64() * 1e3 },
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Rotation3, Unit};
+    use rand::{Rng, SeedableRng};
+
+    fn blob(n: usize, seed: u64) -> Vec<Point3<f64>> {
+        // An anisotropic, asymmetric cloud so that the rotation is identifiable.
+        let mut r = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        (0..n)
+            .map(|_| {
+                let (a, b, c): (f64, f64, f64) = (r.random(), r.random(), r.random());
+                Point3::new(0.12 * a * a, 0.06 * b, 0.03 * c + 0.02 * a)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn rigid_recovers_a_similarity() {
+        let src = blob(400, 1);
+        let rot = Rotation3::from_axis_angle(&Unit::new_normalize(Vector3::new(0.3, -0.5, 1.0)), 0.6);
+        let t = Vector3::new(0.4, -0.2, 0.1);
+        let dst: Vec<_> = src.iter().map(|p| Point3::from(1.3 * (rot * p.coords) + t)).collect();
+        let res = rigid(&src, &dst, &RigidOptions { em: EmOptions { w: 0.0, max_iters: 200, tol: 1e-9 }, scale: true }).unwrap();
+        assert!((res.rotation - rot.matrix()).norm() < 1e-4, "{}", res.rotation);
+        assert!((res.scale - 1.3).abs() < 1e-4);
+        assert!((res.translation - t).norm() < 1e-4);
+        let err = res.moved.iter().zip(&dst).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
+        assert!(err < 1e-4, "max error {err}");
+    }
+
+    #[test]
+    fn non_rigid_fits_a_smooth_bend_in_caller_units() {
+        let src = blob(600, 2);
+        // A smooth bend: z shifts with x², magnitude 1.5 cm.
+        let dst: Vec<_> = src.iter().map(|p| Point3::new(p.x, p.y, p.z + 1.0 * p.x * p.x)).collect();
+        let opts = NonRigidOptions { em: EmOptions { w: 0.0, max_iters: 200, tol: 1e-8 }, beta: 0.8, lambda: 0.5, ..Default::default() };
+        let res = non_rigid(&src, &dst, &opts).unwrap();
+        let errs: Vec<f64> = res.moved.iter().zip(&dst).map(|(a, b)| (a - b).norm()).collect();
+        let mean = errs.iter().sum::<f64>() / errs.len() as f64;
+        assert!(mean < 1.5e-3, "mean error {mean}");
+        // The field moves points that were never samples, consistently.
+        let moved_again = res.field.apply(&to_p3(&src));
+        let diff = moved_again.iter().zip(&res.moved).map(|(a, b)| (Vector3::from(*a) - b.coords).norm()).fold(0.0, f64::max);
+        assert!(diff < 1e-3, "field vs moved: {diff}");
+    }
+
+    #[test]
+    fn bad_input_is_an_error_not_a_panic() {
+        let ok = blob(50, 3);
+        let opts = NonRigidOptions::default();
+        assert_eq!(non_rigid(&[], &ok, &opts).unwrap_err(), CpdError::Empty { which: "source" });
+        let mut nan = ok.clone();
+        nan[7].y = f64::NAN;
+        assert_eq!(non_rigid(&ok, &nan, &opts).unwrap_err(), CpdError::NonFinite { which: "target", index: 7 });
+        let same = vec![Point3::new(1.0, 2.0, 3.0); 20];
+        assert_eq!(rigid(&same, &ok, &RigidOptions::default()).unwrap_err(), CpdError::Degenerate { which: "source" });
+        let bad_w = NonRigidOptions { em: EmOptions { w: 1.0, ..Default::default() }, ..Default::default() };
+        assert!(matches!(non_rigid(&ok, &ok, &bad_w), Err(CpdError::BadParameter { name: "w", .. })));
+    }
+}

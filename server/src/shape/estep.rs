@@ -1,0 +1,250 @@
+//! The CPD E-step: posteriors of the Gaussian mixture centred on the moving
+//! points Y (M) given the fixed data X (N), with a uniform outlier component.
+//!
+//! Only the sufficient statistics leave this module (P1, Pᵀ1, PX and the
+//! negative log-likelihood), so memory is O(M + N): the M×N posterior matrix
+//! is never stored. Two evaluations of the same sums:
+//! - dense: every pair, streamed one data point at a time;
+//! - truncated: once σ is small, pairs farther than `cutoff_sigmas`·σ are
+//!   negligible (e^{-32} at 8σ); a k-d tree over X (built once, X is fixed)
+//!   finds the pairs that matter.
+
+use super::fastexp::exp_neg;
+use kiddo::immutable::float::kdtree::ImmutableKdTree;
+use kiddo::SquaredEuclidean;
+
+pub type P3 = [f64; 3];
+
+/// Sufficient statistics of one E-step.
+#[derive(Clone, Debug, Default)]
+pub struct Posteriors {
+    /// Σ_n P_mn, per moving point.
+    pub p1: Vec<f64>,
+    /// Σ_m P_mn, per data point.
+    pub pt1: Vec<f64>,
+    /// Σ_n P_mn x_n, per moving point.
+    pub px: Vec<P3>,
+    /// Σ P_mn.
+    pub np: f64,
+    /// −Σ_n log(Σ_m e^{-d²/2σ²} + c) + N·3/2·log σ² (up to constants).
+    pub neg_log_likelihood: f64,
+}
+
+/// Distance in σ beyond which pairs are dropped in truncated mode.
+pub const CUTOFF_SIGMAS: f64 = 8.0;
+
+pub struct EStep {
+    x: Vec<P3>,
+    tree: Option<ImmutableKdTree<f64, u32, 3, 32>>,
+    /// Bounding radius of X around its centroid: decides dense or truncated.
+    x_radius: f64,
+    // Reused buffers.
+    ys: [Vec<f64>; 3],
+    row: Vec<f64>,
+    den: Vec<f64>,
+    pairs: Vec<(u32, u32, f64)>,
+}
+
+impl EStep {
+    pub fn new(x: &[P3]) -> Self {
+        let n = x.len().max(1) as f64;
+        let c = x.iter().fold([0.0; 3], |a, p| [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]);
+        let x_radius = x.iter().map(|p| dist2(p, &c)).fold(0.0, f64::max).sqrt();
+        Self { x: x.to_vec(), tree: None, x_radius, ys: Default::default(), row: Vec::new(), den: Vec::new(), pairs: Vec::new() }
+    }
+
+    pub fn data(&self) -> &[P3] {
+        &self.x
+    }
+
+    /// Computes the posteriors of `y` (the moving GMM centroids) into `out`.
+    /// `w` is the outlier weight in [0, 1).
+    pub fn run(&mut self, y: &[P3], sigma2: f64, w: f64, out: &mut Posteriors) {
+        let (m, n) = (y.len(), self.x.len());
+        out.p1.clear();
+        out.p1.resize(m, 0.0);
+        out.pt1.clear();
+        out.pt1.resize(n, 0.0);
+        out.px.clear();
+        out.px.resize(m, [0.0; 3]);
+        out.np = 0.0;
+        out.neg_log_likelihood = 0.0;
+        if m == 0 || n == 0 {
+            return;
+        }
+        let c = outlier_constant(sigma2, w, m, n);
+        let cutoff = CUTOFF_SIGMAS * sigma2.sqrt();
+        // Truncate when the cutoff ball holds a small share of the data volume.
+        if n >= 64 && cutoff < 0.35 * self.x_radius {
+            self.run_truncated(y, sigma2, c, cutoff * cutoff, out);
+        } else {
+            self.run_dense(y, sigma2, c, out);
+        }
+        out.np = out.p1.iter().sum();
+        out.neg_log_likelihood += n as f64 * 1.5 * sigma2.ln();
+    }
+
+    fn run_dense(&mut self, y: &[P3], sigma2: f64, c: f64, out: &mut Posteriors) {
+        let m = y.len();
+        for (d, ys) in self.ys.iter_mut().enumerate() {
+            ys.clear();
+            ys.extend(y.iter().map(|p| p[d]));
+        }
+        self.row.resize(m, 0.0);
+        let k = -0.5 / sigma2;
+        let [yx, yy, yz] = &self.ys;
+        for (j, xn) in self.x.iter().enumerate() {
+            let row = &mut self.row[..m];
+            let mut sum = 0.0;
+            for i in 0..m {
+                let (dx, dy, dz) = (xn[0] - yx[i], xn[1] - yy[i], xn[2] - yz[i]);
+                let e = exp_neg(k * (dx * dx + dy * dy + dz * dz));
+                row[i] = e;
+                sum += e;
+            }
+            let den = sum + c;
+            out.neg_log_likelihood -= den.ln();
+            let inv = 1.0 / den;
+            out.pt1[j] = sum * inv;
+            for i in 0..m {
+                let p = row[i] * inv;
+                out.p1[i] += p;
+                let px = &mut out.px[i];
+                px[0] += p * xn[0];
+                px[1] += p * xn[1];
+                px[2] += p * xn[2];
+            }
+        }
+    }
+
+    fn run_truncated(&mut self, y: &[P3], sigma2: f64, c: f64, cutoff2: f64, out: &mut Posteriors) {
+        if self.tree.is_none() {
+            self.tree = Some(ImmutableKdTree::new_from_slice(&self.x));
+        }
+        let tree = self.tree.as_ref().expect("built above");
+        let k = -0.5 / sigma2;
+        self.pairs.clear();
+        self.den.clear();
+        self.den.resize(self.x.len(), 0.0);
+        for (i, yi) in y.iter().enumerate() {
+            for nb in tree.within_unsorted::<SquaredEuclidean>(yi, cutoff2) {
+                let e = exp_neg(k * nb.distance);
+                self.den[nb.item as usize] += e;
+                self.pairs.push((i as u32, nb.item, e));
+            }
+        }
+        for (j, d) in self.den.iter_mut().enumerate() {
+            let sum = *d;
+            *d = sum + c;
+            out.pt1[j] = sum / *d;
+            out.neg_log_likelihood -= d.ln();
+        }
+        for &(i, j, e) in &self.pairs {
+            let p = e / self.den[j as usize];
+            let xn = &self.x[j as usize];
+            out.p1[i as usize] += p;
+            let px = &mut out.px[i as usize];
+            px[0] += p * xn[0];
+            px[1] += p * xn[1];
+            px[2] += p * xn[2];
+        }
+    }
+}
+
+/// The uniform outlier term of CPD: (2πσ²)^{3/2} · w/(1−w) · M/N.
+pub fn outlier_constant(sigma2: f64, w: f64, m: usize, n: usize) -> f64 {
+    let w = w.clamp(0.0, 0.999);
+    (2.0 * std::f64::consts::PI * sigma2).powf(1.5) * w / (1.0 - w) * m as f64 / n as f64
+}
+
+/// Mean squared distance over all pairs / 3: CPD's initial σ², in O(M + N).
+pub fn initial_sigma2(x: &[P3], y: &[P3]) -> f64 {
+    let (n, m) = (x.len() as f64, y.len() as f64);
+    if n == 0.0 || m == 0.0 {
+        return 1.0;
+    }
+    let sx = x.iter().fold([0.0; 3], |a, p| [a[0] + p[0], a[1] + p[1], a[2] + p[2]]);
+    let sy = y.iter().fold([0.0; 3], |a, p| [a[0] + p[0], a[1] + p[1], a[2] + p[2]]);
+    let xx: f64 = x.iter().map(|p| dot(p, p)).sum();
+    let yy: f64 = y.iter().map(|p| dot(p, p)).sum();
+    ((m * xx + n * yy - 2.0 * dot(&sx, &sy)) / (3.0 * m * n)).max(1e-12)
+}
+
+#[inline]
+pub fn dot(a: &P3, b: &P3) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+#[inline]
+pub fn dist2(a: &P3, b: &P3) -> f64 {
+    let (dx, dy, dz) = (a[0] - b[0], a[1] - b[1], a[2] - b[2]);
+    dx * dx + dy * dy + dz * dz
+}
+
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    fn cloud(n: usize, seed: u64) -> Vec<P3> {
+        let mut r = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        (0..n).map(|_| [r.random::<f64>(), r.random::<f64>(), r.random::<f64>()]).collect()
+    }
+
+    /// The textbook E-step with the full matrix, as the reference.
+    fn reference(x: &[P3], y: &[P3], s2: f64, w: f64) -> Posteriors {
+        let c = outlier_constant(s2, w, y.len(), x.len());
+        let mut out = Posteriors { p1: vec![0.0; y.len()], pt1: vec![0.0; x.len()], px: vec![[0.0; 3]; y.len()], ..Default::default() };
+        for (j, xn) in x.iter().enumerate() {
+            let g: Vec<f64> = y.iter().map(|ym| (-dist2(xn, ym) / (2.0 * s2)).exp()).collect();
+            let den: f64 = g.iter().sum::<f64>() + c;
+            for (i, gi) in g.iter().enumerate() {
+                let p = gi / den;
+                out.p1[i] += p;
+                out.pt1[j] += p;
+                for d in 0..3 {
+                    out.px[i][d] += p * xn[d];
+                }
+            }
+        }
+        out.np = out.p1.iter().sum();
+        out
+    }
+
+    /// Relative closeness (absolute below 1).
+    fn assert_close(a: &Posteriors, b: &Posteriors, tol: f64) {
+        let close = |u: f64, v: f64| (u - v).abs() < tol * v.abs().max(1.0);
+        for (u, v) in a.p1.iter().zip(&b.p1) {
+            assert!(close(*u, *v), "p1 {u} vs {v}");
+        }
+        for (u, v) in a.pt1.iter().zip(&b.pt1) {
+            assert!(close(*u, *v), "pt1 {u} vs {v}");
+        }
+        for (u, v) in a.px.iter().zip(&b.px) {
+            for d in 0..3 {
+                assert!(close(u[d], v[d]), "px {u:?} vs {v:?}");
+            }
+        }
+        assert!(close(a.np, b.np));
+    }
+
+    #[test]
+    fn dense_matches_the_textbook_e_step() {
+        let (x, y) = (cloud(50, 1), cloud(40, 2));
+        let mut e = EStep::new(&x);
+        let mut out = Posteriors::default();
+        e.run(&y, 0.05, 0.1, &mut out);
+        assert_close(&out, &reference(&x, &y, 0.05, 0.1), 1e-10);
+    }
+
+    #[test]
+    fn truncated_matches_the_textbook_e_step_at_small_sigma() {
+        let (x, y) = (cloud(3000, 3), cloud(500, 4));
+        let s2 = 0.0004; // σ = 2 cm in a unit cube: truncated mode
+        let mut e = EStep::new(&x);
+        let mut out = Posteriors::default();
+        e.run(&y, s2, 0.1, &mut out);
+        assert_close(&out, &reference(&x, &y, s2, 0.1), 1e-7);
+    }
+}

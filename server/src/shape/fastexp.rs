@@ -1,0 +1,50 @@
+//! exp(x) for x ≤ 0, branch-free so LLVM vectorises the E-step loops.
+//!
+//! Written by hand because libm's `exp` is a scalar call per element: the
+//! Gaussian affinities of the E-step are most of CPD's time, and this version
+//! runs several times faster at a relative error below 1e-11, far under the
+//! noise of any point cloud.
+
+const LOG2E: f64 = std::f64::consts::LOG2_E;
+/// 1.5·2⁵²: adding it rounds a double to an integer held in the low mantissa bits.
+const ROUND_MAGIC: f64 = 6755399441055744.0;
+
+/// e^x for x ≤ 0 (x below −700 returns ≈ 0; positive x is not supported).
+#[inline(always)]
+pub fn exp_neg(x: f64) -> f64 {
+    let t = x.max(-700.0) * LOG2E;
+    let r = t + ROUND_MAGIC;
+    let n = r - ROUND_MAGIC;
+    let f = (t - n) * std::f64::consts::LN_2; // |f| ≤ ln2/2
+    // Taylor series of e^f to degree 11: truncation error < 2e-16 on |f| ≤ 0.347.
+    let p = 1.0
+        + f * (1.0
+            + f * (1.0 / 2.0
+                + f * (1.0 / 6.0
+                    + f * (1.0 / 24.0
+                        + f * (1.0 / 120.0
+                            + f * (1.0 / 720.0
+                                + f * (1.0 / 5040.0
+                                    + f * (1.0 / 40320.0
+                                        + f * (1.0 / 362880.0 + f * (1.0 / 3628800.0 + f * (1.0 / 39916800.0)))))))))));
+    let ni = (r.to_bits() as i64).wrapping_sub(ROUND_MAGIC.to_bits() as i64);
+    let scale = f64::from_bits(((ni + 1023) as u64) << 52);
+    p * scale
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    #[test]
+    fn matches_std_exp() {
+        let mut worst: f64 = 0.0;
+        for i in 0..200_000 {
+            let x = -(i as f64) * 0.0035;
+            let (a, b) = (exp_neg(x), x.exp());
+            worst = worst.max(((a - b) / b).abs());
+        }
+        assert!(worst < 1e-12, "worst relative error {worst}");
+        assert_eq!(exp_neg(0.0), 1.0);
+        assert!(exp_neg(-1e6) < 1e-300);
+    }
+}
