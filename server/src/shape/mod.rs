@@ -5,3 +5,8 @@ pub mod cpd;
 pub mod estep;
 pub mod fastexp;
 pub mod kernel;
+pub mod register;
+pub mod space;
+
+pub use register::{Registrar, RegisterOptions, Registration};
+pub use space::{BuildOptions, ShapeSpace};

@@ -1,0 +1,478 @@
+//! Online registration (paper §II-A, eq. 5, done as a product must): from one
+//! segmented, partial, noisy cloud of a tool in an unknown pose, estimate the
+//! latent shape ℓ, the rotation, translation and scale together.
+//!
+//! The observed points are the data of a Gaussian mixture centred on the
+//! deformed, posed canonical model points, plus a uniform outlier term (CPD's
+//! direction: unseen model points cost nothing, so occlusion is harmless).
+//! EM: the E-step of CPD; the M-step alternates a closed-form weighted
+//! similarity (pose, scale) and a closed-form MAP latent update (the model is
+//! affine in ℓ, with the PCA variances as the Gaussian prior). σ² is
+//! re-estimated every iteration, so the fit anneals from coarse to fine.
+//!
+//! The pose is unknown, so several rotation hypotheses (principal axes of the
+//! view against the canonical's, and, when the world's up is known, the tool
+//! upright at several yaws) are first scored cheaply on small subsets with
+//! the mean shape; the best survive to the full latent fit.
+
+use super::cpd::{weighted_similarity, Normalization};
+use super::estep::{dist2, initial_sigma2, EStep, Posteriors, P3};
+use super::space::{LinearModel, NamedPoint, ShapeSpace};
+use faer::prelude::*;
+use faer::Side;
+use kiddo::immutable::float::kdtree::ImmutableKdTree;
+use kiddo::SquaredEuclidean;
+use nalgebra::{Matrix3, Point3, Rotation3, SymmetricEigen, UnitQuaternion, Vector3};
+use rand::SeedableRng;
+use serde::Serialize;
+use std::time::Instant;
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum RegisterError {
+    #[error("empty cloud")]
+    Empty,
+    #[error("cloud has a non-finite coordinate at point {0}")]
+    NonFinite(usize),
+    #[error("cloud has {got} points; a fit needs at least {need}")]
+    TooFewPoints { got: usize, need: usize },
+    #[error("cloud has no extent (all points at one place)")]
+    Degenerate,
+    #[error("cloud extent {extent_m:.3} m is not a hand-held tool's (expected {min_m} to {max_m} m); check the units")]
+    AbsurdScale { extent_m: f64, min_m: f64, max_m: f64 },
+}
+
+#[derive(Clone, Copy, Debug, Serialize, serde::Deserialize)]
+pub struct RegisterOptions {
+    /// The world's up direction in the cloud's frame, if known (a table prior).
+    pub up: Option<[f64; 3]>,
+    /// Estimate a uniform scale on top of the latent shape.
+    pub estimate_scale: bool,
+    /// Allowed scale relative to the category's canonical size.
+    pub scale_range: (f64, f64),
+    pub outlier_weight: f64,
+    pub coarse_points: usize,
+    pub coarse_model_points: usize,
+    pub coarse_iters: usize,
+    pub fine_points: usize,
+    pub fine_iters: usize,
+    /// Hypotheses kept from the coarse stage for the full fit.
+    pub keep: usize,
+    pub seed: u64,
+}
+
+impl Default for RegisterOptions {
+    fn default() -> Self {
+        Self {
+            up: Some([0.0, 0.0, 1.0]),
+            estimate_scale: true,
+            scale_range: (0.6, 1.6),
+            outlier_weight: 0.1,
+            coarse_points: 100,
+            coarse_model_points: 120,
+            coarse_iters: 20,
+            fine_points: 500,
+            fine_iters: 40,
+            keep: 2,
+            seed: 0,
+        }
+    }
+}
+
+/// How well the fitted shape explains the cloud.
+#[derive(Clone, Copy, Debug, Serialize, PartialEq)]
+pub struct FitQuality {
+    /// Fraction of (sub-sampled) observed points within `inlier_mm` of the completed shape.
+    pub inlier_fraction: f64,
+    /// RMS distance of the inliers to the completed shape, millimetres.
+    pub residual_mm: f64,
+    pub inlier_mm: f64,
+    /// false when the cloud is not explained by this category (another tool, a table, noise).
+    pub confident: bool,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Registration {
+    pub latent: Vec<f64>,
+    /// Pose of the category's canonical frame in the cloud's frame.
+    pub rotation_cloud_from_canonical: UnitQuaternion<f64>,
+    pub translation_cloud_from_canonical: Vector3<f64>,
+    /// Uniform scale relative to the canonical size.
+    pub scale: f64,
+    /// Final σ², m².
+    pub sigma2: f64,
+    pub fit: FitQuality,
+    /// Canonical keypoints moved through the deformation and the pose (cloud frame).
+    pub keypoints: Vec<NamedPoint>,
+    pub hypotheses: usize,
+    pub iterations: usize,
+    pub elapsed_ms: f64,
+}
+
+/// A shape space prepared for fast online registration.
+pub struct Registrar {
+    pub space: ShapeSpace,
+    coarse: LinearModel,
+    fine: LinearModel,
+    surface: LinearModel,
+    keypoints: LinearModel,
+    /// Principal axes (columns, descending variance) and centroid of the canonical surface, normalised.
+    axes: Matrix3<f64>,
+    centroid: Vector3<f64>,
+}
+
+impl Registrar {
+    pub fn new(space: ShapeSpace) -> Self {
+        let surface = space.linear_model(&space.surface);
+        let fine_idx = farthest_points(&surface.base, 500);
+        let coarse_idx = farthest_points(&surface.base, 120);
+        let kp: Vec<P3> = space.keypoints.iter().map(|k| k.position).collect();
+        let keypoints = space.linear_model(&kp);
+        let (axes, centroid) = principal_axes(&surface.base);
+        Self { coarse: surface.select(&coarse_idx), fine: surface.select(&fine_idx), surface, keypoints, axes, centroid, space }
+    }
+
+    pub fn register(&self, cloud: &[Point3<f64>], opts: &RegisterOptions) -> Result<Registration, RegisterError> {
+        let t0 = Instant::now();
+        check(cloud)?;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed);
+        let all: Vec<P3> = cloud.iter().map(|p| [p.x, p.y, p.z]).collect();
+        let fine_x = subsample(&all, opts.fine_points, &mut rng);
+        let coarse_x = subsample(&fine_x, opts.coarse_points, &mut rng);
+        let coarse_model = self.coarse.select(&(0..opts.coarse_model_points.min(self.coarse.len())).collect::<Vec<_>>());
+
+        // Coarse: every hypothesis, mean shape, similarity only.
+        let hyps = self.hypotheses(&fine_x, opts);
+        let mut scored: Vec<(f64, Pose)> = hyps
+            .iter()
+            .map(|&pose| {
+                let fit = em(&coarse_model, &coarse_x, pose, vec![0.0; 0], None, opts, opts.coarse_iters, &self.space.norm);
+                (fit.nll, fit.pose)
+            })
+            .collect();
+        scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+
+        // Fine: the best few, with the latent.
+        let q = self.space.modes();
+        let mut best: Option<Fit> = None;
+        let mut iterations = 0;
+        for (_, pose) in scored.iter().take(opts.keep.max(1)) {
+            let fit = em(&self.fine, &fine_x, *pose, vec![0.0; q], Some(&self.space.variances), opts, opts.fine_iters, &self.space.norm);
+            iterations += fit.iterations;
+            if best.as_ref().is_none_or(|b| fit.nll < b.nll) {
+                best = Some(fit);
+            }
+        }
+        let fit = best.expect("at least one hypothesis");
+        let quality = self.quality(&fit, &fine_x);
+        let keypoints = self
+            .keypoints
+            .evaluate(&fit.latent)
+            .iter()
+            .zip(&self.space.keypoints)
+            .map(|(y, k)| NamedPoint { name: k.name.clone(), position: fit.pose.apply(y) })
+            .collect();
+        // Canonical frame (metres) → cloud: x = s·R·(z − c)/σn + t.
+        let norm = self.space.norm;
+        let rel = fit.pose.s / norm.scale;
+        let c = Vector3::from(norm.centre);
+        Ok(Registration {
+            latent: fit.latent.clone(),
+            rotation_cloud_from_canonical: UnitQuaternion::from_matrix(&fit.pose.r),
+            translation_cloud_from_canonical: fit.pose.t - rel * (fit.pose.r * c),
+            scale: rel,
+            sigma2: fit.sigma2,
+            fit: quality,
+            keypoints,
+            hypotheses: hyps.len(),
+            iterations,
+            elapsed_ms: t0.elapsed().as_secs_f64() * 1e3,
+        })
+    }
+
+    /// The completed shape in the cloud's frame (dense canonical samples, deformed and posed).
+    pub fn completed_shape(&self, reg: &Registration) -> Vec<Point3<f64>> {
+        let pose = self.pose_of(reg);
+        self.surface.evaluate(&reg.latent).iter().map(|y| Point3::from(pose.apply(y))).collect()
+    }
+
+    /// Any canonical points (canonical frame, metres) moved onto the registered tool.
+    pub fn transfer(&self, reg: &Registration, canonical_points: &[P3]) -> Vec<P3> {
+        let pose = self.pose_of(reg);
+        self.space.linear_model(canonical_points).evaluate(&reg.latent).iter().map(|y| pose.apply(y)).collect()
+    }
+
+    fn pose_of(&self, reg: &Registration) -> Pose {
+        let norm = self.space.norm;
+        let r = *reg.rotation_cloud_from_canonical.to_rotation_matrix().matrix();
+        let c = Vector3::from(norm.centre);
+        Pose { r, t: reg.translation_cloud_from_canonical + reg.scale * (r * c), s: reg.scale * norm.scale }
+    }
+
+    fn hypotheses(&self, x: &[P3], opts: &RegisterOptions) -> Vec<Pose> {
+        let (ax_o, mu_o) = principal_axes(x);
+        let s0 = self.space.norm.scale;
+        let mut rots = Vec::new();
+        // Principal axes of the view onto the canonical's (4 proper sign choices).
+        for (s1, s2) in [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] {
+            let d = Matrix3::from_diagonal(&Vector3::new(s1, s2, 1.0));
+            let mut r = ax_o * d * self.axes.transpose();
+            if r.determinant() < 0.0 {
+                let d = Matrix3::from_diagonal(&Vector3::new(s1, s2, -1.0));
+                r = ax_o * d * self.axes.transpose();
+            }
+            rots.push(r);
+        }
+        match opts.up {
+            Some(up) => {
+                // Upright at six yaws.
+                let up = Vector3::from(up).try_normalize(1e-9).unwrap_or_else(Vector3::z);
+                let align = Rotation3::rotation_between(&Vector3::z(), &up).unwrap_or_else(|| Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI));
+                for k in 0..6 {
+                    let yaw = Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(up), k as f64 * std::f64::consts::TAU / 6.0);
+                    rots.push(*(yaw * align).matrix());
+                }
+            }
+            None => {
+                // No prior: the 24 rotations of the cube.
+                for r in cube_rotations() {
+                    rots.push(r);
+                }
+            }
+        }
+        rots.into_iter()
+            .map(|r| {
+                let s = s0;
+                // Model centroid onto the view's centroid.
+                Pose { r, s, t: mu_o - s * (r * self.centroid) }
+            })
+            .collect()
+    }
+
+    fn quality(&self, fit: &Fit, x: &[P3]) -> FitQuality {
+        let shape: Vec<P3> = self.surface.evaluate(&fit.latent).iter().map(|y| fit.pose.apply(y)).collect();
+        let tree: ImmutableKdTree<f64, u32, 3, 32> = ImmutableKdTree::new_from_slice(&shape);
+        // Sample spacing of the completed surface inflates nearest-point distances; allow for it.
+        let size = fit.pose.s;
+        let inlier_m = (0.004f64).max(0.03 * size);
+        let (mut n_in, mut sum2) = (0usize, 0.0);
+        for p in x {
+            let d2 = tree.nearest_one::<SquaredEuclidean>(p).distance;
+            if d2 <= inlier_m * inlier_m {
+                n_in += 1;
+                sum2 += d2;
+            }
+        }
+        let inlier_fraction = n_in as f64 / x.len().max(1) as f64;
+        let residual_mm = if n_in > 0 { (sum2 / n_in as f64).sqrt() * 1e3 } else { f64::INFINITY };
+        FitQuality { inlier_fraction, residual_mm, inlier_mm: inlier_m * 1e3, confident: inlier_fraction >= 0.85 }
+    }
+}
+
+/// Similarity pose: x = s·R·y + t (y normalised canonical, x cloud frame).
+#[derive(Clone, Copy, Debug)]
+struct Pose {
+    r: Matrix3<f64>,
+    t: Vector3<f64>,
+    s: f64,
+}
+
+impl Pose {
+    fn apply(&self, y: &P3) -> P3 {
+        let p = self.s * (self.r * Vector3::from(*y)) + self.t;
+        [p.x, p.y, p.z]
+    }
+}
+
+struct Fit {
+    pose: Pose,
+    latent: Vec<f64>,
+    sigma2: f64,
+    nll: f64,
+    iterations: usize,
+}
+
+/// EM over pose (and latent, when `prior` is given).
+#[allow(clippy::too_many_arguments)]
+fn em(model: &LinearModel, x: &[P3], mut pose: Pose, mut latent: Vec<f64>, prior: Option<&[f64]>, opts: &RegisterOptions, iters: usize, norm: &Normalization) -> Fit {
+    let q = latent.len();
+    let mut estep = EStep::new(x);
+    let mut post = Posteriors::default();
+    let mut y_model = Vec::with_capacity(model.len());
+    model.evaluate_into(&latent, &mut y_model);
+    let mut y_world: Vec<P3> = y_model.iter().map(|y| pose.apply(y)).collect();
+    let mut sigma2 = initial_sigma2(x, &y_world);
+    let (smin, smax) = (opts.scale_range.0 * norm.scale, opts.scale_range.1 * norm.scale);
+    let (mut prev, mut nll, mut it) = (f64::INFINITY, f64::INFINITY, 0);
+    while it < iters {
+        it += 1;
+        estep.run(&y_world, sigma2, opts.outlier_weight, &mut post);
+        nll = post.neg_log_likelihood;
+        if !(post.np > 1e-9) {
+            break;
+        }
+        // Pose.
+        let step = weighted_similarity(x, &y_model, &post, opts.estimate_scale);
+        pose.r = step.rotation;
+        pose.s = if opts.estimate_scale { step.scale.clamp(smin, smax) } else { norm.scale };
+        // Translation re-derived for a clamped scale: t = μx − s R μy.
+        let (mut mx, mut my) = (Vector3::zeros(), Vector3::zeros());
+        for (xn, w) in x.iter().zip(&post.pt1) {
+            mx += Vector3::from(*xn) * *w;
+        }
+        for (ym, w) in y_model.iter().zip(&post.p1) {
+            my += Vector3::from(*ym) * *w;
+        }
+        pose.t = mx / post.np - pose.s * (pose.r * (my / post.np));
+        // Latent (MAP): (Σ P1 BᵀB + σ²/s² Λ⁻¹) ℓ = Σ Bᵀ(PX̃ − P1 ȳ).
+        if let Some(var) = prior {
+            if q > 0 {
+                let rt = pose.r.transpose();
+                let mut a = Mat::<f64>::zeros(q, q);
+                let mut b = Mat::<f64>::zeros(q, 1);
+                for i in 0..model.len() {
+                    let p1 = post.p1[i];
+                    if p1 < 1e-12 {
+                        continue;
+                    }
+                    let pxt = rt * (Vector3::from(post.px[i]) - pose.t * p1) / pose.s;
+                    let r = pxt - Vector3::from(model.base[i]) * p1;
+                    for j in 0..q {
+                        let bj = Vector3::from(model.basis[j][i]);
+                        b[(j, 0)] += bj.dot(&r);
+                        for k in j..q {
+                            a[(j, k)] += p1 * bj.dot(&Vector3::from(model.basis[k][i]));
+                        }
+                    }
+                }
+                let reg = sigma2 / (pose.s * pose.s);
+                for j in 0..q {
+                    for k in 0..j {
+                        a[(j, k)] = a[(k, j)];
+                    }
+                    a[(j, j)] += reg / var[j];
+                }
+                if let Ok(llt) = a.llt(Side::Lower) {
+                    let sol = llt.solve(&b);
+                    for j in 0..q {
+                        latent[j] = sol[(j, 0)];
+                    }
+                }
+                model.evaluate_into(&latent, &mut y_model);
+            }
+        }
+        for (w, y) in y_world.iter_mut().zip(&y_model) {
+            *w = pose.apply(y);
+        }
+        // σ² from the sufficient statistics.
+        let mut num = 0.0;
+        for (xn, w) in x.iter().zip(&post.pt1) {
+            num += w * (xn[0] * xn[0] + xn[1] * xn[1] + xn[2] * xn[2]);
+        }
+        for i in 0..y_world.len() {
+            let (y, px) = (&y_world[i], &post.px[i]);
+            num += post.p1[i] * (y[0] * y[0] + y[1] * y[1] + y[2] * y[2]) - 2.0 * (px[0] * y[0] + px[1] * y[1] + px[2] * y[2]);
+        }
+        sigma2 = (num / (3.0 * post.np)).abs().max(1e-10);
+        if (prev - nll).abs() <= 1e-7 * nll.abs().max(1e-12) {
+            break;
+        }
+        prev = nll;
+    }
+    Fit { pose, latent, sigma2, nll, iterations: it }
+}
+
+fn check(cloud: &[Point3<f64>]) -> Result<(), RegisterError> {
+    const NEED: usize = 20;
+    if cloud.is_empty() {
+        return Err(RegisterError::Empty);
+    }
+    if let Some(i) = cloud.iter().position(|p| !(p.x.is_finite() && p.y.is_finite() && p.z.is_finite())) {
+        return Err(RegisterError::NonFinite(i));
+    }
+    if cloud.len() < NEED {
+        return Err(RegisterError::TooFewPoints { got: cloud.len(), need: NEED });
+    }
+    let (lo, hi) = cloud.iter().fold((cloud[0], cloud[0]), |(lo, hi), p| (lo.inf(p), hi.sup(p)));
+    let extent = (hi - lo).norm();
+    if extent < 1e-9 {
+        return Err(RegisterError::Degenerate);
+    }
+    let (min_m, max_m) = (0.005, 5.0);
+    if !(min_m..=max_m).contains(&extent) {
+        return Err(RegisterError::AbsurdScale { extent_m: extent, min_m, max_m });
+    }
+    Ok(())
+}
+
+/// A seeded subset of at most `n` points.
+fn subsample(x: &[P3], n: usize, rng: &mut rand_chacha::ChaCha8Rng) -> Vec<P3> {
+    if x.len() <= n {
+        return x.to_vec();
+    }
+    let mut idx = rand::seq::index::sample(rng, x.len(), n).into_vec();
+    idx.sort_unstable();
+    idx.into_iter().map(|i| x[i]).collect()
+}
+
+/// Farthest-point order of the first `n` points (deterministic: starts at index 0),
+/// so any prefix is an even cover of the surface.
+pub fn farthest_points(x: &[P3], n: usize) -> Vec<usize> {
+    let n = n.min(x.len());
+    if n == 0 {
+        return Vec::new();
+    }
+    let mut d = vec![f64::INFINITY; x.len()];
+    let mut out = Vec::with_capacity(n);
+    let mut cur = 0;
+    for _ in 0..n {
+        out.push(cur);
+        let c = x[cur];
+        let mut best = (0.0, cur);
+        for (i, p) in x.iter().enumerate() {
+            let di = dist2(p, &c).min(d[i]);
+            d[i] = di;
+            if di > best.0 {
+                best = (di, i);
+            }
+        }
+        cur = best.1;
+    }
+    out
+}
+
+/// Principal axes (columns, descending variance, right-handed) and centroid.
+fn principal_axes(x: &[P3]) -> (Matrix3<f64>, Vector3<f64>) {
+    let n = x.len().max(1) as f64;
+    let mu = x.iter().fold(Vector3::zeros(), |a, p| a + Vector3::from(*p)) / n;
+    let mut cov = Matrix3::zeros();
+    for p in x {
+        let d = Vector3::from(*p) - mu;
+        cov += d * d.transpose() / n;
+    }
+    let eig = SymmetricEigen::new(cov);
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
+    let col = |k: usize| -> Vector3<f64> { eig.eigenvectors.column(order[k]).into_owned() };
+    let mut axes = Matrix3::from_columns(&[col(0), col(1), col(2)]);
+    if axes.determinant() < 0.0 {
+        let c2 = -axes.column(2).into_owned();
+        axes.set_column(2, &c2);
+    }
+    (axes, mu)
+}
+
+/// The 24 proper rotations mapping the coordinate axes onto themselves.
+fn cube_rotations() -> Vec<Matrix3<f64>> {
+    let mut out = Vec::with_capacity(24);
+    let axes: [Vector3<f64>; 6] = [Vector3::x(), Vector3::y(), Vector3::z(), -Vector3::x(), -Vector3::y(), -Vector3::z()];
+    for a in &axes {
+        for b in &axes {
+            if a.dot(b).abs() > 0.5 {
+                continue;
+            }
+            let c = a.cross(b);
+            out.push(Matrix3::from_columns(&[*a, *b, c]));
+        }
+    }
+    out
+}

@@ -1,0 +1,367 @@
+//! Category shape space (paper §II-A): the canonical instance's deformation
+//! fields onto the training instances, reduced by PCA to q latent modes.
+//!
+//! W(ℓ) = mean + Σ_j ℓ_j·mode_j gives kernel weights for the canonical
+//! centres C, and v(z) = G(z, C)·W(ℓ) moves ANY canonical point z: model
+//! points, the dense completed shape, the demonstration's keypoints.
+//! All stored geometry is in the canonical frame of the category; the kernel
+//! acts in coordinates normalised by the canonical's centroid and RMS radius.
+
+use super::cpd::{self, to_p3, EmOptions, NonRigidOptions, Normalization, RigidOptions};
+use super::estep::P3;
+use super::kernel::{gaussian, LowRankKernel};
+use crate::geometry::{sample_points, TriMesh};
+use faer::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+use std::time::Instant;
+
+/// Artefact format version; bump on any change of the stored fields' meaning.
+pub const FORMAT_VERSION: u32 = 1;
+const MAGIC: &[u8; 8] = b"GRSPSPC\0";
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct NamedPoint {
+    pub name: String,
+    pub position: [f64; 3],
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ShapeSpace {
+    pub category: String,
+    pub norm: Normalization,
+    /// Kernel centres C (normalised canonical coordinates), M points.
+    pub centres: Vec<P3>,
+    /// Kernel width, normalised units.
+    pub beta: f64,
+    pub lambda: f64,
+    /// Mean of the flattened W_i (3M, row-major m·3 + d).
+    pub mean: Vec<f64>,
+    /// q unit-norm modes (each 3M).
+    pub modes: Vec<Vec<f64>>,
+    /// Variance of the training latents along each mode (the prior of ℓ).
+    pub variances: Vec<f64>,
+    /// Cumulative explained variance fraction after each kept mode.
+    pub explained_variance: Vec<f64>,
+    /// Dense canonical surface samples (canonical frame, metres): the shape completed by a fit.
+    pub surface: Vec<P3>,
+    /// Semantic keypoints of the canonical instance (canonical frame).
+    pub keypoints: Vec<NamedPoint>,
+    /// Names of the training instances, in the order of `train_latents`.
+    pub instances: Vec<String>,
+    /// Latent of each training instance (projection of its W_i).
+    pub train_latents: Vec<Vec<f64>>,
+}
+
+#[derive(Clone, Copy, Debug, Serialize, Deserialize)]
+pub struct BuildOptions {
+    /// Kernel centres sampled on the canonical.
+    pub centres: usize,
+    /// Points sampled on each training instance.
+    pub instance_points: usize,
+    pub surface_points: usize,
+    /// Keep modes until this fraction of the variance is explained.
+    pub explained: f64,
+    pub max_modes: usize,
+    pub cpd: NonRigidOptions,
+    pub seed: u64,
+}
+
+impl Default for BuildOptions {
+    fn default() -> Self {
+        Self {
+            centres: 600,
+            instance_points: 1500,
+            surface_points: 3000,
+            explained: 0.97,
+            max_modes: 8,
+            cpd: NonRigidOptions { beta: 0.35, lambda: 1.0, em: EmOptions { w: 0.0, max_iters: 120, tol: 1e-6 }, ..Default::default() },
+            seed: 1,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SpaceError {
+    #[error("shape space needs at least 2 training instances, got {0}")]
+    TooFewInstances(usize),
+    #[error("sampling {what}: {source}")]
+    Sample { what: String, source: crate::geometry::sample::SampleError },
+    #[error("registering the canonical to {instance}: {source}")]
+    Cpd { instance: String, source: cpd::CpdError },
+    #[error("PCA failed: {0}")]
+    Pca(String),
+    #[error("{path}: {reason}")]
+    Artefact { path: String, reason: String },
+}
+
+/// Report of a build, for the CLI.
+#[derive(Clone, Debug, Serialize)]
+pub struct BuildReport {
+    pub category: String,
+    pub instances: usize,
+    pub points: usize,
+    pub modes: usize,
+    pub explained_variance: Vec<f64>,
+    pub kernel_rank: usize,
+    pub mean_fit_residual_mm: f64,
+    pub build_s: f64,
+}
+
+impl ShapeSpace {
+    pub fn modes(&self) -> usize {
+        self.modes.len()
+    }
+
+    /// Builds the space from the canonical mesh and the training meshes (all in
+    /// the category's canonical frame, metres). `progress` is called after each instance.
+    pub fn build(
+        category: &str,
+        canonical: &TriMesh,
+        canonical_keypoints: Vec<NamedPoint>,
+        training: &[(String, TriMesh)],
+        opts: &BuildOptions,
+        mut progress: impl FnMut(usize, usize),
+    ) -> Result<(Self, BuildReport), SpaceError> {
+        let t0 = Instant::now();
+        if training.len() < 2 {
+            return Err(SpaceError::TooFewInstances(training.len()));
+        }
+        let sample = |m: &TriMesh, n, seed, what: &str| {
+            sample_points(m, n, seed).map(|p| to_p3(&p)).map_err(|source| SpaceError::Sample { what: what.to_string(), source })
+        };
+        let c = sample(canonical, opts.centres, opts.seed, "canonical")?;
+        let surface = sample(canonical, opts.surface_points, opts.seed + 1, "canonical surface")?;
+        let norm = Normalization::of(&c);
+        let y0: Vec<P3> = c.iter().map(|p| norm.forward(p)).collect();
+        let kernel = LowRankKernel::new(&y0, opts.cpd.beta, opts.cpd.max_rank, opts.cpd.rank_tol, opts.seed);
+        let c_pts = cpd::to_points(&c);
+        let m = c.len();
+        let mut rows: Vec<Vec<f64>> = Vec::with_capacity(training.len());
+        let mut residual_sum = 0.0;
+        for (i, (name, mesh)) in training.iter().enumerate() {
+            let x = cpd::to_points(&sample(mesh, opts.instance_points, opts.seed + 10 + i as u64, name)?);
+            // Rigid pre-alignment of the instance to the canonical frame.
+            let pre = cpd::rigid(&x, &c_pts, &RigidOptions { em: EmOptions { w: 0.0, max_iters: 60, tol: 1e-6 }, scale: false })
+                .map_err(|source| SpaceError::Cpd { instance: name.clone(), source })?;
+            let res = cpd::non_rigid_with_kernel(&y0, norm, &kernel, &pre.moved, &opts.cpd)
+                .map_err(|source| SpaceError::Cpd { instance: name.clone(), source })?;
+            residual_sum += res.report.sigma2.sqrt() * 1e3;
+            let w = &res.field.weights;
+            rows.push((0..m * 3).map(|k| w[(k / 3, k % 3)]).collect());
+            progress(i + 1, training.len());
+        }
+        let (mean, modes, variances, explained) = pca(&rows, opts.explained, opts.max_modes)?;
+        let train_latents = rows
+            .iter()
+            .map(|r| modes.iter().map(|md| md.iter().zip(r).zip(&mean).map(|((a, b), c)| a * (b - c)).sum()).collect())
+            .collect();
+        let space = ShapeSpace {
+            category: category.to_string(),
+            norm,
+            centres: y0,
+            beta: opts.cpd.beta,
+            lambda: opts.cpd.lambda,
+            mean,
+            modes,
+            variances,
+            explained_variance: explained.clone(),
+            surface,
+            keypoints: canonical_keypoints,
+            instances: training.iter().map(|(n, _)| n.clone()).collect(),
+            train_latents,
+        };
+        let report = BuildReport {
+            category: category.to_string(),
+            instances: training.len(),
+            points: m,
+            modes: space.modes(),
+            explained_variance: explained,
+            kernel_rank: kernel.rank(),
+            mean_fit_residual_mm: residual_sum / training.len() as f64,
+            build_s: t0.elapsed().as_secs_f64(),
+        };
+        Ok((space, report))
+    }
+
+    /// Kernel weights W(ℓ) (M×3) for a latent vector (missing entries are 0).
+    pub fn weights(&self, latent: &[f64]) -> Mat<f64> {
+        let m = self.centres.len();
+        Mat::from_fn(m, 3, |i, d| {
+            let k = i * 3 + d;
+            self.mean[k] + self.modes.iter().zip(latent).map(|(md, l)| l * md[k]).sum::<f64>()
+        })
+    }
+
+    /// The linear model of canonical points `z` (canonical frame, metres):
+    /// y(ℓ) = base + basis·ℓ, in normalised coordinates.
+    pub fn linear_model(&self, z: &[P3]) -> LinearModel {
+        let zn: Vec<P3> = z.iter().map(|p| self.norm.forward(p)).collect();
+        let g = gaussian(&zn, &self.centres, self.beta);
+        let m = self.centres.len();
+        let mean = Mat::from_fn(m, 3, |i, d| self.mean[i * 3 + d]);
+        let gm = &g * &mean;
+        let base: Vec<P3> = zn.iter().enumerate().map(|(i, p)| [p[0] + gm[(i, 0)], p[1] + gm[(i, 1)], p[2] + gm[(i, 2)]]).collect();
+        let basis = self
+            .modes
+            .iter()
+            .map(|md| {
+                let mm = Mat::from_fn(m, 3, |i, d| md[i * 3 + d]);
+                let b = &g * &mm;
+                (0..zn.len()).map(|i| [b[(i, 0)], b[(i, 1)], b[(i, 2)]]).collect()
+            })
+            .collect();
+        LinearModel { base, basis }
+    }
+
+    /// Canonical points moved by the deformation of `latent`, canonical frame, metres.
+    pub fn deform(&self, z: &[P3], latent: &[f64]) -> Vec<P3> {
+        self.linear_model(z).evaluate(latent).iter().map(|p| self.norm.inverse(p)).collect()
+    }
+
+    // ------------------------------------------------------------ artefact
+
+    /// Writes the versioned artefact: magic, version, payload length and
+    /// checksum, then the payload (JSON). Written to a temporary file and renamed,
+    /// so a crash never leaves a half-written artefact under the real name.
+    pub fn save(&self, path: &Path) -> Result<(), SpaceError> {
+        let err = |reason: String| SpaceError::Artefact { path: path.display().to_string(), reason };
+        let payload = serde_json::to_vec(self).map_err(|e| err(e.to_string()))?;
+        let mut bytes = Vec::with_capacity(payload.len() + 28);
+        bytes.extend_from_slice(MAGIC);
+        bytes.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+        bytes.extend_from_slice(&(payload.len() as u64).to_le_bytes());
+        bytes.extend_from_slice(&fnv1a(&payload).to_le_bytes());
+        bytes.extend_from_slice(&payload);
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir).map_err(|e| err(e.to_string()))?;
+        }
+        let tmp = path.with_extension("tmp");
+        std::fs::write(&tmp, &bytes).map_err(|e| err(e.to_string()))?;
+        std::fs::rename(&tmp, path).map_err(|e| err(e.to_string()))
+    }
+
+    /// Loads an artefact, refusing (never half-loading) a corrupt or
+    /// version-mismatched one.
+    pub fn load(path: &Path) -> Result<Self, SpaceError> {
+        let bytes = std::fs::read(path).map_err(|e| SpaceError::Artefact { path: path.display().to_string(), reason: e.to_string() })?;
+        Self::from_bytes(&bytes).map_err(|reason| SpaceError::Artefact { path: path.display().to_string(), reason })
+    }
+
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, String> {
+        if bytes.len() < 28 || &bytes[..8] != MAGIC {
+            return Err("not a graspd shape-space artefact (bad magic)".into());
+        }
+        let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
+        if version != FORMAT_VERSION {
+            return Err(format!("artefact format version {version}, this graspd reads version {FORMAT_VERSION}; rebuild it with `graspd space build`"));
+        }
+        let len = u64::from_le_bytes(bytes[12..20].try_into().expect("8 bytes"));
+        let sum = u64::from_le_bytes(bytes[20..28].try_into().expect("8 bytes"));
+        let payload = &bytes[28..];
+        if payload.len() as u64 != len {
+            return Err(format!("truncated or padded: payload {} bytes, header says {len}", payload.len()));
+        }
+        if fnv1a(payload) != sum {
+            return Err("checksum mismatch: the artefact is corrupted".into());
+        }
+        let space: ShapeSpace = serde_json::from_slice(payload).map_err(|e| format!("payload: {e}"))?;
+        space.validate()?;
+        Ok(space)
+    }
+
+    fn validate(&self) -> Result<(), String> {
+        let m3 = self.centres.len() * 3;
+        if self.centres.is_empty() || self.mean.len() != m3 || self.modes.iter().any(|md| md.len() != m3) {
+            return Err("inconsistent sizes of centres, mean and modes".into());
+        }
+        if self.variances.len() != self.modes.len() || !(self.beta > 0.0) || !(self.norm.scale > 0.0) {
+            return Err("inconsistent variances, beta or normalisation".into());
+        }
+        let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
+        if !finite(&self.mean) || !self.modes.iter().all(|m| finite(m)) || !finite(&self.variances) {
+            return Err("non-finite numbers in the model".into());
+        }
+        Ok(())
+    }
+}
+
+/// Canonical points as an affine function of the latent, normalised coordinates.
+#[derive(Clone, Debug)]
+pub struct LinearModel {
+    pub base: Vec<P3>,
+    /// basis[j][i]: displacement of point i per unit of ℓ_j.
+    pub basis: Vec<Vec<P3>>,
+}
+
+impl LinearModel {
+    pub fn len(&self) -> usize {
+        self.base.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.base.is_empty()
+    }
+    pub fn evaluate(&self, latent: &[f64]) -> Vec<P3> {
+        let mut out = self.base.clone();
+        for (b, l) in self.basis.iter().zip(latent) {
+            for (o, bi) in out.iter_mut().zip(b) {
+                o[0] += l * bi[0];
+                o[1] += l * bi[1];
+                o[2] += l * bi[2];
+            }
+        }
+        out
+    }
+    pub fn evaluate_into(&self, latent: &[f64], out: &mut Vec<P3>) {
+        out.clear();
+        out.extend_from_slice(&self.base);
+        for (b, l) in self.basis.iter().zip(latent) {
+            for (o, bi) in out.iter_mut().zip(b) {
+                o[0] += l * bi[0];
+                o[1] += l * bi[1];
+                o[2] += l * bi[2];
+            }
+        }
+    }
+    /// The sub-model of the given point indices.
+    pub fn select(&self, idx: &[usize]) -> LinearModel {
+        LinearModel { base: idx.iter().map(|&i| self.base[i]).collect(), basis: self.basis.iter().map(|b| idx.iter().map(|&i| b[i]).collect()).collect() }
+    }
+}
+
+/// PCA of the rows: (mean, modes, variances, cumulative explained fractions).
+#[allow(clippy::type_complexity)]
+fn pca(rows: &[Vec<f64>], explained: f64, max_modes: usize) -> Result<(Vec<f64>, Vec<Vec<f64>>, Vec<f64>, Vec<f64>), SpaceError> {
+    let n = rows.len();
+    let d = rows[0].len();
+    let mut mean = vec![0.0; d];
+    for r in rows {
+        for (m, x) in mean.iter_mut().zip(r) {
+            *m += x / n as f64;
+        }
+    }
+    // Centred data, one instance per column (d × n): a thin SVD gives the modes directly.
+    let a = Mat::from_fn(d, n, |k, i| rows[i][k] - mean[k]);
+    let svd = a.thin_svd().map_err(|e| SpaceError::Pca(format!("{e:?}")))?;
+    let s: Vec<f64> = (0..svd.S().dim()).map(|i| svd.S().column_vector()[i]).collect();
+    let total: f64 = s.iter().map(|x| x * x).sum::<f64>().max(1e-300);
+    let mut modes = Vec::new();
+    let mut variances = Vec::new();
+    let mut cumulative = Vec::new();
+    let mut acc = 0.0;
+    for (j, sj) in s.iter().enumerate() {
+        if modes.len() >= max_modes.min(n - 1) || (acc >= explained && !modes.is_empty()) {
+            break;
+        }
+        acc += sj * sj / total;
+        modes.push((0..d).map(|k| svd.U()[(k, j)]).collect());
+        variances.push((sj * sj / (n - 1) as f64).max(1e-12));
+        cumulative.push(acc);
+    }
+    Ok((mean, modes, variances, cumulative))
+}
+
+/// FNV-1a, 64-bit: enough to catch corruption (not an authenticity check).
+fn fnv1a(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf29ce484222325u64, |h, b| (h ^ *b as u64).wrapping_mul(0x100000001b3))
+}
