@@ -5,3 +5,4 @@
 
 pub mod geometry;
 pub mod shape;
+pub mod eval;

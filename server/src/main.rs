@@ -1,1 +1,26 @@
-fn main() {}
+//! `graspd`: the daemon and the offline tools (assets, clouds, CPD, shape
+//! spaces, registration, evaluations). Every command whose output a script
+//! would read takes --json.
+
+mod cli;
+
+use clap::Parser;
+use std::process::ExitCode;
+
+fn main() -> ExitCode {
+    let args = cli::Cli::parse();
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("GRASPD_LOG").unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")))
+        .with_writer(std::io::stderr)
+        .init();
+    // Single-threaded numerics unless asked: figures are quoted per core, and
+    // the daemon decides its own parallelism.
+    faer::set_global_parallelism(faer::Par::Seq);
+    match cli::run(args) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(2)
+        }
+    }
+}

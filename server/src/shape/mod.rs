@@ -1,6 +1,7 @@
 //! The shape engine: CPD, category shape spaces, registration of partial
 //! views, keypoint transfer.
 
+pub mod builtin;
 pub mod cpd;
 pub mod estep;
 pub mod fastexp;

@@ -47,6 +47,8 @@ pub struct RegisterOptions {
     pub up: Option<[f64; 3]>,
     /// Estimate a uniform scale on top of the latent shape.
     pub estimate_scale: bool,
+    /// Fit the latent shape (false: the undeformed mean shape, pose only).
+    pub fit_latent: bool,
     /// Allowed scale relative to the category's canonical size.
     pub scale_range: (f64, f64),
     pub outlier_weight: f64,
@@ -65,6 +67,7 @@ impl Default for RegisterOptions {
         Self {
             up: Some([0.0, 0.0, 1.0]),
             estimate_scale: true,
+            fit_latent: true,
             scale_range: (0.6, 1.6),
             outlier_weight: 0.1,
             coarse_points: 100,
@@ -108,13 +111,39 @@ pub struct Registration {
     pub elapsed_ms: f64,
 }
 
-/// A shape space prepared for fast online registration.
-pub struct Registrar {
-    pub space: ShapeSpace,
+/// The model point sets used by a fit, each affine in the latent.
+struct Models {
     coarse: LinearModel,
     fine: LinearModel,
     surface: LinearModel,
     keypoints: LinearModel,
+}
+
+impl Models {
+    fn new(space: &ShapeSpace, deformable: bool) -> Self {
+        let kp: Vec<P3> = space.keypoints.iter().map(|k| k.position).collect();
+        let model = |z: &[P3]| {
+            if deformable {
+                space.linear_model(z)
+            } else {
+                LinearModel { base: z.iter().map(|p| space.norm.forward(p)).collect(), basis: Vec::new() }
+            }
+        };
+        let surface = model(&space.surface);
+        // Model subsets chosen on the canonical (not the mean) so both model kinds use the same points.
+        let canonical: Vec<P3> = space.surface.iter().map(|p| space.norm.forward(p)).collect();
+        let fine_idx = farthest_points(&canonical, 500);
+        let coarse_idx = farthest_points(&canonical, 120);
+        Self { coarse: surface.select(&coarse_idx), fine: surface.select(&fine_idx), surface, keypoints: model(&kp) }
+    }
+}
+
+/// A shape space prepared for fast online registration.
+pub struct Registrar {
+    pub space: ShapeSpace,
+    deformable: Models,
+    /// The undeformed canonical: the `canonical` baseline (latent not fitted).
+    rigid: Models,
     /// Principal axes (columns, descending variance) and centroid of the canonical surface, normalised.
     axes: Matrix3<f64>,
     centroid: Vector3<f64>,
@@ -122,13 +151,10 @@ pub struct Registrar {
 
 impl Registrar {
     pub fn new(space: ShapeSpace) -> Self {
-        let surface = space.linear_model(&space.surface);
-        let fine_idx = farthest_points(&surface.base, 500);
-        let coarse_idx = farthest_points(&surface.base, 120);
-        let kp: Vec<P3> = space.keypoints.iter().map(|k| k.position).collect();
-        let keypoints = space.linear_model(&kp);
-        let (axes, centroid) = principal_axes(&surface.base);
-        Self { coarse: surface.select(&coarse_idx), fine: surface.select(&fine_idx), surface, keypoints, axes, centroid, space }
+        let deformable = Models::new(&space, true);
+        let rigid = Models::new(&space, false);
+        let (axes, centroid) = principal_axes(&deformable.surface.base);
+        Self { deformable, rigid, axes, centroid, space }
     }
 
     pub fn register(&self, cloud: &[Point3<f64>], opts: &RegisterOptions) -> Result<Registration, RegisterError> {
@@ -138,7 +164,8 @@ impl Registrar {
         let all: Vec<P3> = cloud.iter().map(|p| [p.x, p.y, p.z]).collect();
         let fine_x = subsample(&all, opts.fine_points, &mut rng);
         let coarse_x = subsample(&fine_x, opts.coarse_points, &mut rng);
-        let coarse_model = self.coarse.select(&(0..opts.coarse_model_points.min(self.coarse.len())).collect::<Vec<_>>());
+        let models = if opts.fit_latent { &self.deformable } else { &self.rigid };
+        let coarse_model = models.coarse.select(&(0..opts.coarse_model_points.min(models.coarse.len())).collect::<Vec<_>>());
 
         // Coarse: every hypothesis, mean shape, similarity only.
         let hyps = self.hypotheses(&fine_x, opts);
@@ -152,19 +179,20 @@ impl Registrar {
         scored.sort_by(|a, b| a.0.total_cmp(&b.0));
 
         // Fine: the best few, with the latent.
-        let q = self.space.modes();
+        let q = if opts.fit_latent { self.space.modes() } else { 0 };
         let mut best: Option<Fit> = None;
         let mut iterations = 0;
         for (_, pose) in scored.iter().take(opts.keep.max(1)) {
-            let fit = em(&self.fine, &fine_x, *pose, vec![0.0; q], Some(&self.space.variances), opts, opts.fine_iters, &self.space.norm);
+            let prior = opts.fit_latent.then_some(self.space.variances.as_slice());
+            let fit = em(&models.fine, &fine_x, *pose, vec![0.0; q], prior, opts, opts.fine_iters, &self.space.norm);
             iterations += fit.iterations;
             if best.as_ref().is_none_or(|b| fit.nll < b.nll) {
                 best = Some(fit);
             }
         }
         let fit = best.expect("at least one hypothesis");
-        let quality = self.quality(&fit, &fine_x);
-        let keypoints = self
+        let quality = self.quality(models, &fit, &fine_x);
+        let keypoints = models
             .keypoints
             .evaluate(&fit.latent)
             .iter()
@@ -192,13 +220,21 @@ impl Registrar {
     /// The completed shape in the cloud's frame (dense canonical samples, deformed and posed).
     pub fn completed_shape(&self, reg: &Registration) -> Vec<Point3<f64>> {
         let pose = self.pose_of(reg);
-        self.surface.evaluate(&reg.latent).iter().map(|y| Point3::from(pose.apply(y))).collect()
+        self.models_of(reg).surface.evaluate(&reg.latent).iter().map(|y| Point3::from(pose.apply(y))).collect()
     }
 
     /// Any canonical points (canonical frame, metres) moved onto the registered tool.
     pub fn transfer(&self, reg: &Registration, canonical_points: &[P3]) -> Vec<P3> {
         let pose = self.pose_of(reg);
+        if reg.latent.is_empty() {
+            return canonical_points.iter().map(|z| pose.apply(&self.space.norm.forward(z))).collect();
+        }
         self.space.linear_model(canonical_points).evaluate(&reg.latent).iter().map(|y| pose.apply(y)).collect()
+    }
+
+    /// A registration without latent (the `canonical` baseline) uses the undeformed models.
+    fn models_of(&self, reg: &Registration) -> &Models {
+        if reg.latent.is_empty() { &self.rigid } else { &self.deformable }
     }
 
     fn pose_of(&self, reg: &Registration) -> Pose {
@@ -248,8 +284,8 @@ impl Registrar {
             .collect()
     }
 
-    fn quality(&self, fit: &Fit, x: &[P3]) -> FitQuality {
-        let shape: Vec<P3> = self.surface.evaluate(&fit.latent).iter().map(|y| fit.pose.apply(y)).collect();
+    fn quality(&self, models: &Models, fit: &Fit, x: &[P3]) -> FitQuality {
+        let shape: Vec<P3> = models.surface.evaluate(&fit.latent).iter().map(|y| fit.pose.apply(y)).collect();
         let tree: ImmutableKdTree<f64, u32, 3, 32> = ImmutableKdTree::new_from_slice(&shape);
         // Sample spacing of the completed surface inflates nearest-point distances; allow for it.
         let size = fit.pose.s;

@@ -1,0 +1,72 @@
+//! Command-line front end of the engine.
+
+mod assets;
+mod cloud;
+mod cpd;
+mod eval;
+mod register;
+mod space;
+
+use clap::{Parser, Subcommand};
+
+pub type CliResult = Result<(), Box<dyn std::error::Error>>;
+
+#[derive(Parser)]
+#[command(name = "graspd", version, about = "One-shot grasp transfer for multi-fingered hands")]
+pub struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// The built-in procedural tool families.
+    #[command(subcommand)]
+    Assets(assets::AssetsCommand),
+    /// Renders a segmented partial view of a mesh with the virtual depth camera.
+    Cloud(cloud::CloudArgs),
+    /// Coherent Point Drift of one cloud onto another.
+    Cpd(cpd::CpdArgs),
+    /// Category shape spaces.
+    #[command(subcommand)]
+    Space(space::SpaceCommand),
+    /// Registers a partial cloud to a category: latent shape, pose, keypoints.
+    Register(register::RegisterArgs),
+    /// Evaluations that print the figures of the issues.
+    #[command(subcommand)]
+    Eval(eval::EvalCommand),
+}
+
+pub fn run(cli: Cli) -> CliResult {
+    match cli.command {
+        Command::Assets(c) => assets::run(c),
+        Command::Cloud(a) => cloud::run(a),
+        Command::Cpd(a) => cpd::run(a),
+        Command::Space(c) => space::run(c),
+        Command::Register(a) => register::run(a),
+        Command::Eval(c) => eval::run(c),
+    }
+}
+
+/// Prints `value` as pretty JSON on stdout.
+pub fn print_json(value: &impl serde::Serialize) -> CliResult {
+    println!("{}", serde_json::to_string_pretty(value)?);
+    Ok(())
+}
+
+/// A progress bar on stderr for work a person waits on (hidden when not a terminal).
+pub fn progress_bar(len: u64, what: &str) -> indicatif::ProgressBar {
+    let bar = indicatif::ProgressBar::new(len);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{msg:>12} [{bar:30}] {pos}/{len} {elapsed}")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    bar.set_message(what.to_string());
+    bar
+}
+
+/// The repository's assets directory (next to the server crate).
+pub fn assets_dir() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets")
+}

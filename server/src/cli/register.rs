@@ -1,0 +1,79 @@
+use super::space::spaces_dir;
+use super::{print_json, CliResult};
+use clap::Args;
+use graspd::shape::{builtin, Registrar, RegisterOptions};
+use graspd::tools::Category;
+use std::path::PathBuf;
+
+#[derive(Args)]
+pub struct RegisterArgs {
+    #[arg(long)]
+    category: String,
+    /// Segmented partial cloud of one tool (.ply, .pcd, .xyz, .npy), metres.
+    #[arg(long)]
+    cloud: PathBuf,
+    /// World up in the cloud's frame, "x,y,z" (default: z up); "none" when unknown.
+    #[arg(long, default_value = "0,0,1")]
+    up: String,
+    /// Write the completed shape (cloud frame) here.
+    #[arg(long)]
+    shape_out: Option<PathBuf>,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn parse_up(s: &str) -> Result<Option<[f64; 3]>, String> {
+    if s.eq_ignore_ascii_case("none") {
+        return Ok(None);
+    }
+    let v: Vec<f64> = s.split(',').map(|x| x.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|e| format!("--up {s:?}: {e}"))?;
+    match v.as_slice() {
+        [x, y, z] if (x * x + y * y + z * z) > 1e-12 && v.iter().all(|a| a.is_finite()) => Ok(Some([*x, *y, *z])),
+        _ => Err(format!("--up {s:?}: expected three numbers, not all zero, or \"none\"")),
+    }
+}
+
+pub fn run(a: RegisterArgs) -> CliResult {
+    let category: Category = a.category.parse()?;
+    let cloud = graspd::io::read_cloud(&a.cloud)?;
+    let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
+    let registrar = Registrar::new(space);
+    let opts = RegisterOptions { up: parse_up(&a.up)?, seed: a.seed, ..Default::default() };
+    let reg = registrar.register(&cloud, &opts)?;
+    if let Some(p) = &a.shape_out {
+        graspd::io::write_cloud(p, &registrar.completed_shape(&reg))?;
+    }
+    let q = reg.rotation_cloud_from_canonical.coords;
+    let out = serde_json::json!({
+        "category": category.name(),
+        "points": cloud.len(),
+        "latent": reg.latent,
+        "pose": {
+            "frame": "cloud_from_canonical",
+            "translation": reg.translation_cloud_from_canonical.as_slice(),
+            "rotation_xyzw": [q.x, q.y, q.z, q.w],
+        },
+        "scale": reg.scale,
+        "sigma2": reg.sigma2,
+        "fit": reg.fit,
+        "keypoints": reg.keypoints,
+        "hypotheses": reg.hypotheses,
+        "iterations": reg.iterations,
+        "elapsed_ms": reg.elapsed_ms,
+    });
+    if a.json {
+        print_json(&out)?;
+    } else {
+        println!(
+            "{}: scale {:.3}, inliers {:.1}%, residual {:.2} mm, {} ({:.1} ms)",
+            category.name(), reg.scale, reg.fit.inlier_fraction * 100.0, reg.fit.residual_mm,
+            if reg.fit.confident { "confident" } else { "POOR FIT" }, reg.elapsed_ms
+        );
+        for k in &reg.keypoints {
+            println!("  {:<16} {:>9.4} {:>9.4} {:>9.4}", k.name, k.position[0], k.position[1], k.position[2]);
+        }
+    }
+    Ok(())
+}

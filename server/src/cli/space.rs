@@ -1,0 +1,53 @@
+use super::{assets_dir, print_json, progress_bar, CliResult};
+use clap::Subcommand;
+use graspd::shape::builtin;
+use graspd::shape::BuildOptions;
+use graspd::tools::Category;
+use std::path::PathBuf;
+
+#[derive(Subcommand)]
+pub enum SpaceCommand {
+    /// Builds (and caches) the shape space of a built-in category.
+    Build {
+        #[arg(long)]
+        category: String,
+        /// Artefact directory (default: assets/spaces).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+pub fn spaces_dir() -> PathBuf {
+    assets_dir().join("spaces")
+}
+
+pub fn run(cmd: SpaceCommand) -> CliResult {
+    match cmd {
+        SpaceCommand::Build { category, out, json } => {
+            let category: Category = category.parse()?;
+            let bar = progress_bar(10, "instances");
+            let (space, report) = builtin::build(category, &BuildOptions::default(), |i, n| {
+                bar.set_length(n as u64);
+                bar.set_position(i as u64);
+            })?;
+            bar.finish_and_clear();
+            let dir = out.unwrap_or_else(spaces_dir);
+            let path = builtin::artefact_path(&dir, category);
+            space.save(&path)?;
+            if json {
+                let mut v = serde_json::to_value(&report)?;
+                v["artefact"] = serde_json::json!(path);
+                print_json(&v)?;
+            } else {
+                println!(
+                    "{}: {} instances, {} points, {} modes (explained {:.3}), kernel rank {}, {:.2} s -> {}",
+                    report.category, report.instances, report.points, report.modes,
+                    report.explained_variance.last().copied().unwrap_or(0.0), report.kernel_rank, report.build_s, path.display()
+                );
+            }
+        }
+    }
+    Ok(())
+}

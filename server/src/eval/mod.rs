@@ -1,0 +1,3 @@
+//! Evaluations that print the figures the issues ask for.
+
+pub mod transfer;

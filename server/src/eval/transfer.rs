@@ -1,0 +1,225 @@
+//! Keypoint-transfer accuracy from single partial views (issue: shape engine).
+//!
+//! Each trial places an instance at a random pose on a table (z = 0), renders
+//! one view with the virtual depth camera (noise, optional outliers), and
+//! registers it with the category's shape space. Errors are measured against
+//! the instance's ground-truth semantic keypoints, posed the same way, and the
+//! completed shape against the instance's true surface. Two baselines run on
+//! the same views: `canonical` (our pose fit, latent held at zero: the
+//! undeformed canonical) and `cpd_partial` (non-rigid CPD of the canonical,
+//! placed by that pose fit, straight onto the partial view).
+
+use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
+use crate::geometry::sample_points;
+use crate::shape::cpd::{self, EmOptions, NonRigidOptions};
+use crate::shape::estep::P3;
+use crate::shape::{Registrar, RegisterOptions};
+use crate::tools::{Instance, Split};
+use kiddo::immutable::float::kdtree::ImmutableKdTree;
+use kiddo::SquaredEuclidean;
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng};
+use serde::Serialize;
+use std::time::Instant;
+
+#[derive(Clone, Copy, Debug)]
+pub struct TransferEvalOptions {
+    pub views: usize,
+    pub noise: DepthNoise,
+    /// Fraction of extra outlier points (uniform in the view's bounding box, grown by 20%).
+    pub outliers: f64,
+    /// Uniform scale jitter of the instance (±, relative).
+    pub scale_jitter: f64,
+    /// Lay the tool on its side (rotated 90° about its x axis) instead of its natural rest pose.
+    pub on_side: bool,
+    pub seed: u64,
+    pub register: RegisterOptions,
+}
+
+impl Default for TransferEvalOptions {
+    fn default() -> Self {
+        Self { views: 8, noise: DepthNoise::default(), outliers: 0.0, scale_jitter: 0.0, on_side: false, seed: 7, register: RegisterOptions::default() }
+    }
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Percentiles {
+    pub median: f64,
+    pub p90: f64,
+    pub mean: f64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct MethodErrors {
+    pub keypoint_error_mm: Percentiles,
+    pub chamfer_mm: Percentiles,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct SplitReport {
+    pub split: String,
+    pub instances: usize,
+    pub trials: usize,
+    pub points_per_view: Percentiles,
+    pub ours: MethodErrors,
+    pub canonical: MethodErrors,
+    pub cpd_partial: MethodErrors,
+    pub fit_ms: FitTimes,
+    pub confident_fraction: f64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct FitTimes {
+    pub p50: f64,
+    pub p99: f64,
+    pub max: f64,
+}
+
+struct Trial {
+    points: usize,
+    kp: [Vec<f64>; 3],
+    chamfer: [f64; 3],
+    fit_ms: f64,
+    confident: bool,
+}
+
+/// Runs the evaluation on the instances of one split.
+pub fn evaluate(registrar: &Registrar, instances: &[&Instance], split: Split, opts: &TransferEvalOptions, mut progress: impl FnMut()) -> SplitReport {
+    let mut trials = Vec::new();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed);
+    for inst in instances {
+        let truth_surface = sample_points(&inst.mesh, 4000, 99).map(|p| cpd::to_p3(&p)).unwrap_or_default();
+        for view in 0..opts.views {
+            if let Some(t) = trial(registrar, inst, &truth_surface, view, opts, &mut rng) {
+                trials.push(t);
+            }
+            progress();
+        }
+    }
+    let collect = |k: usize| MethodErrors {
+        keypoint_error_mm: percentiles(trials.iter().flat_map(|t| t.kp[k].iter().copied()).collect()),
+        chamfer_mm: percentiles(trials.iter().map(|t| t.chamfer[k]).collect()),
+    };
+    let times = percentiles_raw(trials.iter().map(|t| t.fit_ms).collect());
+    SplitReport {
+        split: split.name().to_string(),
+        instances: instances.len(),
+        trials: trials.len(),
+        points_per_view: percentiles(trials.iter().map(|t| t.points as f64).collect()),
+        ours: collect(0),
+        canonical: collect(1),
+        cpd_partial: collect(2),
+        fit_ms: FitTimes { p50: times.0, p99: times.1, max: times.2 },
+        confident_fraction: trials.iter().filter(|t| t.confident).count() as f64 / trials.len().max(1) as f64,
+    }
+}
+
+fn trial(registrar: &Registrar, inst: &Instance, truth_surface: &[P3], view: usize, opts: &TransferEvalOptions, rng: &mut rand_chacha::ChaCha8Rng) -> Option<Trial> {
+    // Place the tool: random yaw and position on the table, optional scale and side rest.
+    let scale = 1.0 + opts.scale_jitter * (2.0 * rng.random::<f64>() - 1.0);
+    let yaw = rng.random::<f64>() * std::f64::consts::TAU;
+    let base = if opts.on_side { UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_2) } else { UnitQuaternion::identity() };
+    let mut mesh = inst.mesh.clone();
+    mesh.map_vertices(|p| Point3::from(p.coords * scale));
+    let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw) * base;
+    // Rest on the table: lowest point at z = 0 after rotation.
+    let zmin = mesh.vertices.iter().map(|p| (rot * p).z).fold(f64::INFINITY, f64::min);
+    let offset = Vector3::new(0.2 * (rng.random::<f64>() - 0.5), 0.2 * (rng.random::<f64>() - 0.5), -zmin);
+    let world_from_tool = Isometry3::from_parts(Translation3::from(offset), rot);
+    let pose_pt = |p: &P3| -> P3 {
+        let q = world_from_tool * Point3::from(Vector3::from(*p) * scale);
+        [q.x, q.y, q.z]
+    };
+    let truth_kp: Vec<P3> = inst.keypoints.iter().map(|k| pose_pt(&k.position)).collect();
+    let truth_world: Vec<P3> = truth_surface.iter().map(pose_pt).collect();
+
+    let scene = Scene::new(&mesh, world_from_tool, Some(0.0)).ok()?;
+    let centre = world_from_tool * Point3::from(mesh.aabb().map(|(lo, hi)| (lo.coords + hi.coords) / 2.0)?);
+    let intrinsics = Intrinsics::default();
+    let cam_pose = standard_view(view, opts.views, centre, mesh.diagonal(), intrinsics).ok()?;
+    let cam = DepthCamera { intrinsics, world_from_camera: cam_pose, noise: opts.noise };
+    let mut cloud = cam.capture(&scene, rng.random()).ok()?.points_world;
+    if cloud.len() < 50 {
+        return None;
+    }
+    add_outliers(&mut cloud, opts.outliers, rng);
+
+    // Ours.
+    let t0 = Instant::now();
+    let reg = registrar.register(&cloud, &RegisterOptions { seed: rng.random(), ..opts.register }).ok()?;
+    let fit_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let ours_kp: Vec<P3> = reg.keypoints.iter().map(|k| k.position).collect();
+    let ours_shape = cpd::to_p3(&registrar.completed_shape(&reg));
+
+    // Baseline 1: the undeformed canonical, pose fitted by the same machinery.
+    let canon = registrar.register(&cloud, &RegisterOptions { seed: rng.random(), fit_latent: false, ..opts.register }).ok()?;
+    let canon_kp: Vec<P3> = canon.keypoints.iter().map(|k| k.position).collect();
+    let canon_shape = cpd::to_p3(&registrar.completed_shape(&canon));
+
+    // Baseline 2: non-rigid CPD of the placed canonical straight onto the view.
+    let placed_surface = registrar.completed_shape(&canon);
+    let placed_kp: Vec<P3> = canon_kp.clone();
+    let nr = cpd::non_rigid(
+        &placed_surface.iter().step_by(4).copied().collect::<Vec<_>>(),
+        &cloud,
+        &NonRigidOptions { em: EmOptions { w: 0.1, max_iters: 80, tol: 1e-5 }, beta: 0.35, lambda: 1.0, ..Default::default() },
+    )
+    .ok()?;
+    let cpd_kp = nr.field.apply(&placed_kp);
+    let cpd_shape = nr.field.apply(&cpd::to_p3(&placed_surface));
+
+    let kp_err = |pred: &[P3]| pred.iter().zip(&truth_kp).map(|(a, b)| crate::shape::estep::dist2(a, b).sqrt() * 1e3).collect::<Vec<_>>();
+    Some(Trial {
+        points: cloud.len(),
+        kp: [kp_err(&ours_kp), kp_err(&canon_kp), kp_err(&cpd_kp)],
+        chamfer: [chamfer_mm(&ours_shape, &truth_world), chamfer_mm(&canon_shape, &truth_world), chamfer_mm(&cpd_shape, &truth_world)],
+        fit_ms,
+        confident: reg.fit.confident,
+    })
+}
+
+/// Adds `fraction`·N points uniform in the cloud's bounding box grown by 20%.
+pub fn add_outliers(cloud: &mut Vec<Point3<f64>>, fraction: f64, rng: &mut rand_chacha::ChaCha8Rng) {
+    if fraction <= 0.0 || cloud.is_empty() {
+        return;
+    }
+    let (lo, hi) = cloud.iter().fold((cloud[0], cloud[0]), |(lo, hi), p| (lo.inf(p), hi.sup(p)));
+    let pad = (hi - lo) * 0.2;
+    let (lo, hi) = (lo - pad, hi + pad);
+    let n = (cloud.len() as f64 * fraction).round() as usize;
+    for _ in 0..n {
+        cloud.push(Point3::new(rng.random_range(lo.x..=hi.x), rng.random_range(lo.y..=hi.y), rng.random_range(lo.z..=hi.z)));
+    }
+}
+
+/// Symmetric mean nearest-neighbour distance, millimetres.
+pub fn chamfer_mm(a: &[P3], b: &[P3]) -> f64 {
+    if a.is_empty() || b.is_empty() {
+        return f64::INFINITY;
+    }
+    let one_way = |from: &[P3], to: &[P3]| {
+        let tree: ImmutableKdTree<f64, u32, 3, 32> = ImmutableKdTree::new_from_slice(to);
+        from.iter().map(|p| tree.nearest_one::<SquaredEuclidean>(p).distance.sqrt()).sum::<f64>() / from.len() as f64
+    };
+    0.5 * (one_way(a, b) + one_way(b, a)) * 1e3
+}
+
+pub fn percentiles(mut v: Vec<f64>) -> Percentiles {
+    v.retain(|x| x.is_finite());
+    if v.is_empty() {
+        return Percentiles { median: f64::NAN, p90: f64::NAN, mean: f64::NAN };
+    }
+    v.sort_by(f64::total_cmp);
+    let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+    Percentiles { median: at(0.5), p90: at(0.9), mean: v.iter().sum::<f64>() / v.len() as f64 }
+}
+
+fn percentiles_raw(mut v: Vec<f64>) -> (f64, f64, f64) {
+    if v.is_empty() {
+        return (f64::NAN, f64::NAN, f64::NAN);
+    }
+    v.sort_by(f64::total_cmp);
+    let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+    (at(0.5), at(0.99), v[v.len() - 1])
+}
+
