@@ -16,9 +16,11 @@
 //! ```
 
 pub mod keypoints;
+pub mod kinematics;
 pub mod model;
 
 pub use keypoints::Keypoint;
+pub use kinematics::{perturb_wrist, HandKinematics, WRIST_DOF};
 pub use model::{
     CollisionPrimitive, CollisionShape, HandModel, HandModelError, Joint, JointDrive, JointId, JointKind, Link, LinkId,
     SIH_ASSET_DIR,
