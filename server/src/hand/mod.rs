@@ -26,3 +26,5 @@ pub use model::{
     SIH_ASSET_DIR,
 };
 
+#[cfg(test)]
+mod tests;
