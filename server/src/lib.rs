@@ -3,6 +3,9 @@
 //! The engine (usable in-process without the daemon): see ARCHITECTURE.md at
 //! the repository root for the data flow from a point cloud to an action.
 
-pub mod geometry;
-pub mod shape;
 pub mod eval;
+pub mod geometry;
+pub mod hand;
+pub mod io;
+pub mod shape;
+pub mod tools;
