@@ -66,6 +66,9 @@ pub fn write_cloud(path: impl AsRef<Path>, points: &[Point3<f64>]) -> Result<()>
 pub fn write_cloud_with(path: impl AsRef<Path>, points: &[Point3<f64>], encoding: Encoding) -> Result<()> {
     let path = path.as_ref();
     let format = CloudFormat::from_path(path)?;
+    if extension(path) == "csv" {
+        return write_file(path, |w| write_columns(w, points, ","));
+    }
     write_file(path, |w| write_cloud_to(w, points, format, encoding))
 }
 
@@ -147,7 +150,11 @@ impl Scalar {
         macro_rules! rd {
             ($t:ty) => {{
                 let a = b.get(..std::mem::size_of::<$t>())?.try_into().ok()?;
-                if big { <$t>::from_be_bytes(a) as f64 } else { <$t>::from_le_bytes(a) as f64 }
+                if big {
+                    <$t>::from_be_bytes(a) as f64
+                } else {
+                    <$t>::from_le_bytes(a) as f64
+                }
             }};
         }
         use Scalar::*;
@@ -325,7 +332,12 @@ pub fn parse_ply(bytes: &[u8]) -> Result<Cloud> {
 
 /// Walks the binary records of `e`; collects points when `want` names the
 /// x, y, z property indices. Returns them and the bytes after the element.
-fn ply_binary<'a>(e: &PlyElement, mut data: &'a [u8], big: bool, want: Option<[usize; 3]>) -> Result<(Cloud, &'a [u8])> {
+fn ply_binary<'a>(
+    e: &PlyElement,
+    mut data: &'a [u8],
+    big: bool,
+    want: Option<[usize; 3]>,
+) -> Result<(Cloud, &'a [u8])> {
     let min = e.min_record();
     let what = format!("'{}' records", e.name);
     let n = check_count(PLY, &what, e.count, min, data.len())?;
@@ -347,7 +359,10 @@ fn ply_binary<'a>(e: &PlyElement, mut data: &'a [u8], big: bool, want: Option<[u
                 PlyProp::List(c, item) => {
                     let len = c.take(&mut data, big).ok_or_else(|| truncated(i))?;
                     if len < 0.0 {
-                        return Err(IoError::bad(PLY, format!("record {i} of '{}' has a negative list length", e.name)));
+                        return Err(IoError::bad(
+                            PLY,
+                            format!("record {i} of '{}' has a negative list length", e.name),
+                        ));
                     }
                     let bytes = (len as usize).checked_mul(item.size()).filter(|&b| b <= data.len());
                     data = &data[bytes.ok_or_else(|| truncated(i))?..];
@@ -367,7 +382,10 @@ fn ply_ascii(h: &PlyHeader, vi: usize, want: [usize; 3], data: &[u8]) -> Result<
     for e in &h.elements[..vi] {
         for i in 0..e.count {
             if recs.next().is_none() {
-                return Err(IoError::bad(PLY, format!("truncated data: expected {} '{}' lines, found {i}", e.count, e.name)));
+                return Err(IoError::bad(
+                    PLY,
+                    format!("truncated data: expected {} '{}' lines, found {i}", e.count, e.name),
+                ));
             }
         }
     }
@@ -459,12 +477,15 @@ pub fn parse_pcd(bytes: &[u8]) -> Result<Cloud> {
         match get(key) {
             None => Ok(None),
             Some((_, v, ln)) => match v.as_slice() {
-                [c] => c.parse().map(Some).map_err(|_| IoError::at_line(PCD, *ln, format!("{key} '{c}' is not a count"))),
+                [c] => {
+                    c.parse().map(Some).map_err(|_| IoError::at_line(PCD, *ln, format!("{key} '{c}' is not a count")))
+                }
                 _ => Err(IoError::at_line(PCD, *ln, format!("{key} takes one value"))),
             },
         }
     };
-    let names = get("FIELDS").or_else(|| get("COLUMNS")).ok_or_else(|| IoError::bad(PCD, "header has no FIELDS line"))?;
+    let names =
+        get("FIELDS").or_else(|| get("COLUMNS")).ok_or_else(|| IoError::bad(PCD, "header has no FIELDS line"))?;
     let list = |key: &str, default: Option<&'static str>| -> Result<Vec<&str>> {
         match (get(key), default) {
             (Some((_, v, ln)), _) if v.len() != names.1.len() => Err(IoError::at_line(
@@ -480,8 +501,9 @@ pub fn parse_pcd(bytes: &[u8]) -> Result<Cloud> {
     let (sizes, types, counts) = (list("SIZE", None)?, list("TYPE", None)?, list("COUNT", Some("1"))?);
     let mut fields = Vec::with_capacity(names.1.len());
     for (k, name) in names.1.iter().enumerate() {
-        let ty = Scalar::pcd(&types[k].to_ascii_uppercase(), sizes[k])
-            .ok_or_else(|| IoError::bad(PCD, format!("field '{name}': unsupported TYPE {} SIZE {}", types[k], sizes[k])))?;
+        let ty = Scalar::pcd(&types[k].to_ascii_uppercase(), sizes[k]).ok_or_else(|| {
+            IoError::bad(PCD, format!("field '{name}': unsupported TYPE {} SIZE {}", types[k], sizes[k]))
+        })?;
         let count = counts[k]
             .parse()
             .ok()
@@ -502,9 +524,10 @@ pub fn parse_pcd(bytes: &[u8]) -> Result<Cloud> {
     };
     let mut want = [0; 3];
     for (k, axis) in ["x", "y", "z"].iter().enumerate() {
-        want[k] = fields.iter().position(|f| f.name == *axis).ok_or_else(|| {
-            IoError::bad(PCD, format!("no '{axis}' field (FIELDS: {})", names.1.join(" ")))
-        })?;
+        want[k] = fields
+            .iter()
+            .position(|f| f.name == *axis)
+            .ok_or_else(|| IoError::bad(PCD, format!("no '{axis}' field (FIELDS: {})", names.1.join(" "))))?;
     }
     let data = &bytes[pos..];
     match data_kind.as_str() {
@@ -565,9 +588,9 @@ fn pcd_compressed(fields: &[PcdField], want: [usize; 3], points: u64, data: &[u8
     let (Some(packed), Some(raw)) = (word(0), word(4)) else {
         return Err(IoError::bad(PCD, "binary_compressed data shorter than its 8-byte size header"));
     };
-    let input = data
-        .get(8..8 + packed)
-        .ok_or_else(|| IoError::bad(PCD, format!("truncated data: {packed} compressed bytes declared, {} present", data.len() - 8)))?;
+    let input = data.get(8..8 + packed).ok_or_else(|| {
+        IoError::bad(PCD, format!("truncated data: {packed} compressed bytes declared, {} present", data.len() - 8))
+    })?;
     let (off, rec) = pcd_layout(fields, want);
     let n = check_count(PCD, "points", points, rec as u64, raw)?;
     if n * rec != raw {
@@ -664,24 +687,36 @@ pub fn parse_xyz(bytes: &[u8]) -> Result<Cloud> {
             [x, y, z, ..] => {
                 let v = |t: &str| {
                     parse_f64(XYZ, ln, t).map_err(|e| match tok.iter().all(|t| t.parse::<f64>().is_err()) {
-                        true => IoError::at_line(XYZ, ln, "column names? XYZ files have no header row; prefix it with '#'"),
+                        true => {
+                            IoError::at_line(XYZ, ln, "column names? XYZ files have no header row; prefix it with '#'")
+                        }
                         false => e,
                     })
                 };
                 out.push(point(XYZ, out.len(), Some(ln), v(x)?, v(y)?, v(z)?)?);
             }
-            _ => return Err(IoError::at_line(XYZ, ln, format!("expected at least 3 columns (x y z), found {}", tok.len()))),
+            _ => {
+                return Err(IoError::at_line(
+                    XYZ,
+                    ln,
+                    format!("expected at least 3 columns (x y z), found {}", tok.len()),
+                ))
+            }
         }
     }
     Ok(out)
 }
 
 /// "x y z" per line, shortest text that reads back the same f64.
-pub fn write_xyz(mut w: impl Write, points: &[Point3<f64>]) -> Result<()> {
+pub fn write_xyz(w: impl Write, points: &[Point3<f64>]) -> Result<()> {
+    write_columns(w, points, " ")
+}
+
+fn write_columns(mut w: impl Write, points: &[Point3<f64>], sep: &str) -> Result<()> {
     check_finite(XYZ, points)?;
     let mut out = String::with_capacity(points.len() * 32);
     for p in points {
-        out.push_str(&format!("{} {} {}\n", p.x, p.y, p.z));
+        out.push_str(&format!("{}{sep}{}{sep}{}\n", p.x, p.y, p.z));
     }
     write_all(&mut w, out.as_bytes())
 }
@@ -836,6 +871,7 @@ mod tests {
             let path = dir.path().join(name);
             write_cloud(&path, &sample()).unwrap();
             close(&read_cloud(&path).unwrap(), &sample(), 1e-7);
+            assert_eq!(name == "d.csv", std::fs::read_to_string(&path).unwrap_or_default().contains(','));
             write_cloud_with(&path, &sample(), Encoding::Ascii).unwrap();
             close(&read_cloud(&path).unwrap(), &sample(), 1e-7);
         }
@@ -859,6 +895,46 @@ mod tests {
         let bad = [Point3::new(0.0, f64::NAN, 0.0)];
         for f in [CloudFormat::Ply, CloudFormat::Pcd, CloudFormat::Xyz, CloudFormat::Npy] {
             assert!(write_cloud_to(Vec::new(), &bad, f, Encoding::Binary).is_err());
+        }
+    }
+
+    /// Cheap deterministic xorshift, for the mutation test.
+    fn xorshift(seed: &mut u64) -> u64 {
+        *seed ^= *seed << 13;
+        *seed ^= *seed >> 7;
+        *seed ^= *seed << 17;
+        *seed
+    }
+
+    /// Every prefix and thousands of random byte edits of valid files: the
+    /// parsers may refuse them, but must not panic or allocate wildly.
+    #[test]
+    fn mutated_and_truncated_files_never_panic() {
+        use CloudFormat::*;
+        let mut samples = vec![
+            (Ply, PLY_ASCII.as_bytes().to_vec()),
+            (Ply, ply_binary(false, 0)),
+            (Ply, ply_binary(true, 0)),
+            (Pcd, [pcd_head("binary", "2").into_bytes(), pcd_records()].concat()),
+            (Pcd, format!("{}1 0.5 7 8 9 -1 2 3\n1 3 7 8 9 0.125 -4 3\n", pcd_head("ascii", "2")).into_bytes()),
+            (Xyz, b"# c\n1 2 3\n4,5,6\n".to_vec()),
+        ];
+        for f in [Ply, Pcd, Npy] {
+            samples.push((f, encode(&sample(), f, Encoding::Binary)));
+        }
+        let mut seed = 0x9e37_79b9_7f4a_7c15;
+        for (f, b) in samples {
+            for cut in 0..b.len() {
+                let _ = parse_cloud(&b[..cut], f);
+            }
+            for _ in 0..3000 {
+                let mut m = b.clone();
+                for _ in 0..1 + xorshift(&mut seed) % 4 {
+                    let i = (xorshift(&mut seed) % m.len() as u64) as usize;
+                    m[i] = xorshift(&mut seed) as u8;
+                }
+                let _ = parse_cloud(&m, f);
+            }
         }
     }
 
@@ -938,20 +1014,40 @@ mod tests {
             parse_ply(b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\nend_header\n"),
             &["no scalar property 'z'"],
         );
-        assert_err(parse_ply(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty half x\nend_header\n"), &["line 4", "half"]);
-        assert_err(parse_ply(format!("{}1 2 3\nnan 0 0\n", ply_head("ascii", "2")).as_bytes()), &["line 9", "point 1", "non-finite"]);
-        assert_err(parse_ply(format!("{}1 2 3\n1 2 3\n", ply_head("ascii", "3")).as_bytes()), &["truncated", "expected 3 vertices, found 2"]);
-        assert_err(parse_ply(format!("{}1 2 3 4\n", ply_head("ascii", "1")).as_bytes()), &["line 8", "expected 3 values, found 4"]);
+        assert_err(
+            parse_ply(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty half x\nend_header\n"),
+            &["line 4", "half"],
+        );
+        assert_err(
+            parse_ply(format!("{}1 2 3\nnan 0 0\n", ply_head("ascii", "2")).as_bytes()),
+            &["line 9", "point 1", "non-finite"],
+        );
+        assert_err(
+            parse_ply(format!("{}1 2 3\n1 2 3\n", ply_head("ascii", "3")).as_bytes()),
+            &["truncated", "expected 3 vertices, found 2"],
+        );
+        assert_err(
+            parse_ply(format!("{}1 2 3 4\n", ply_head("ascii", "1")).as_bytes()),
+            &["line 8", "expected 3 values, found 4"],
+        );
         assert_err(parse_ply(format!("{}1 2\n", ply_head("ascii", "1")).as_bytes()), &["line 8", "too few values"]);
-        assert_err(parse_ply(format!("{}1 2 x\n", ply_head("ascii", "1")).as_bytes()), &["line 8", "'x' is not a number"]);
+        assert_err(
+            parse_ply(format!("{}1 2 x\n", ply_head("ascii", "1")).as_bytes()),
+            &["line 8", "'x' is not a number"],
+        );
         assert_err(parse_ply(ply_head("ascii", "1000000000000").as_bytes()), &["expected 1000000000000 vertices"]);
-        assert_err(parse_ply(ply_head("binary_little_endian", "1000000000000").as_bytes()), &["expected 1000000000000"]);
+        assert_err(
+            parse_ply(ply_head("binary_little_endian", "1000000000000").as_bytes()),
+            &["expected 1000000000000"],
+        );
         assert_err(parse_ply(ply_head("binary_little_endian", "99999999999999999999999").as_bytes()), &["not a count"]);
         let mut nan = ply_head("binary_little_endian", "1").into_bytes();
         [0.0f32, f32::INFINITY, 0.0].iter().for_each(|c| nan.extend_from_slice(&c.to_le_bytes()));
         assert_err(parse_ply(&nan), &["point 0", "non-finite"]);
         let mut neg = b"ply\nformat binary_little_endian 1.0\nelement f 1\nproperty list char int v\n".to_vec();
-        neg.extend_from_slice(b"element vertex 0\nproperty float x\nproperty float y\nproperty float z\nend_header\n\xff");
+        neg.extend_from_slice(
+            b"element vertex 0\nproperty float x\nproperty float y\nproperty float z\nend_header\n\xff",
+        );
         assert_err(parse_ply(&neg), &["negative list length"]);
         assert_eq!(parse_ply(ply_head("binary_big_endian", "0").as_bytes()).unwrap(), vec![]);
     }
@@ -998,9 +1094,15 @@ mod tests {
         assert_err(parse_pcd(format!("{}{body}", pcd_head("ascii", "3")).as_bytes()), &["expected 3 points, found 2"]);
         assert_err(parse_pcd(format!("{}{body}", pcd_head("ascii", "1")).as_bytes()), &["line 14", "more data lines"]);
         let short = "1 0.5 7 8 9 -1 2\n";
-        assert_err(parse_pcd(format!("{}{short}", pcd_head("ascii", "1")).as_bytes()), &["line 12", "expected 8 values, found 7"]);
+        assert_err(
+            parse_pcd(format!("{}{short}", pcd_head("ascii", "1")).as_bytes()),
+            &["line 12", "expected 8 values, found 7"],
+        );
         let nan = "1 0.5 7 8 9 nan 2 3\n";
-        assert_err(parse_pcd(format!("{}{nan}", pcd_head("ascii", "1")).as_bytes()), &["line 12", "point 0", "non-finite"]);
+        assert_err(
+            parse_pcd(format!("{}{nan}", pcd_head("ascii", "1")).as_bytes()),
+            &["line 12", "point 0", "non-finite"],
+        );
     }
 
     /// LZF as literal runs only (valid, if uncompressed), for test data.
@@ -1046,7 +1148,10 @@ mod tests {
     #[test]
     fn pcd_bad_headers() {
         assert_err(parse_pcd(b"VERSION 0.7\nFIELDS x y z\n"), &["no 'DATA' line"]);
-        assert_err(parse_pcd(b"FIELDS x y z\nSIZE 4 4\nTYPE F F F\nPOINTS 0\nDATA ascii\n"), &["line 2", "SIZE has 2 entries"]);
+        assert_err(
+            parse_pcd(b"FIELDS x y z\nSIZE 4 4\nTYPE F F F\nPOINTS 0\nDATA ascii\n"),
+            &["line 2", "SIZE has 2 entries"],
+        );
         assert_err(parse_pcd(b"FIELDS x y\nSIZE 4 4\nTYPE F F\nPOINTS 0\nDATA ascii\n"), &["no 'z' field"]);
         assert_err(parse_pcd(b"FIELDS x y z\nSIZE 4 4 2\nTYPE F F F\nPOINTS 0\nDATA ascii\n"), &["TYPE F SIZE 2"]);
         assert_err(parse_pcd(b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 2\nPOINTS 3\nDATA ascii\n"), &["disagrees"]);
@@ -1134,7 +1239,9 @@ mod tests {
         let len = u16::from_le_bytes([b[8], b[9]]) as usize;
         assert_eq!((10 + len) % 64, 0);
         assert_eq!(b.len(), 10 + len + 4 * 12);
-        assert!(std::str::from_utf8(&b[10..10 + len]).unwrap().starts_with("{'descr': '<f4', 'fortran_order': False, 'shape': (4, 3), }"));
+        assert!(std::str::from_utf8(&b[10..10 + len])
+            .unwrap()
+            .starts_with("{'descr': '<f4', 'fortran_order': False, 'shape': (4, 3), }"));
     }
 
     #[test]

@@ -10,9 +10,11 @@ pub mod cloud;
 pub mod error;
 pub mod mesh;
 
-pub use cloud::{read_cloud, read_cloud_from, write_cloud, write_cloud_with, CloudFormat};
+pub use cloud::{parse_cloud, read_cloud, read_cloud_from, write_cloud, write_cloud_to, write_cloud_with, CloudFormat};
 pub use error::IoError;
-pub use mesh::{check_mesh, read_mesh, write_obj, write_obj_to, write_stl, write_stl_to, LoadedMesh};
+pub use mesh::{
+    check_mesh, parse_mesh, read_mesh, write_obj, write_obj_to, write_stl, write_stl_to, LoadedMesh, MeshFormat,
+};
 
 use error::Result;
 use nalgebra::Point3;
@@ -87,9 +89,10 @@ fn check_count(format: &'static str, what: &str, count: u64, min_record: u64, av
         _ => Err(IoError::bad(
             format,
             format!(
-                "expected {count} {what} (at least {} bytes) but only {available} bytes of data follow \
-                 (truncated file or bad count in the header)",
-                need.map(|n| n.to_string()).unwrap_or_else(|| "> 2^64".into())
+                "truncated data or bad count in the header: expected {count} {what} (at least {} bytes), \
+                 found {available} bytes (room for {})",
+                need.map(|n| n.to_string()).unwrap_or_else(|| "> 2^64".into()),
+                available as u64 / min_record.max(1)
             ),
         )),
     }
