@@ -2,5 +2,6 @@
 //! the virtual depth camera.
 
 pub mod mesh;
+pub mod primitives;
 
 pub use mesh::{Topology, TriMesh};
