@@ -4,3 +4,4 @@
 //! the repository root for the data flow from a point cloud to an action.
 
 pub mod geometry;
+pub mod tools;

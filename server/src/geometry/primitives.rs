@@ -316,7 +316,8 @@ pub fn rounded_box(half: &Vector3<f64>, corner_radius: f64, taper: f64) -> Resul
     if !(taper.is_finite() && taper > -1.0 && taper < 1.0) {
         return Err(PrimitiveError::BadDimension { what: "box taper", value: taper });
     }
-    let section = CrossSection::RoundedRect { half_u: half.x, half_v: half.y, corner_radius, corner_segments: 4 }.polygon()?;
+    let section =
+        CrossSection::RoundedRect { half_u: half.x, half_v: half.y, corner_radius, corner_segments: 4 }.polygon()?;
     let top = 1.0 - taper;
     // The sweep frame along +z with up = +x has u = x, v = z × x = y.
     sweep(
@@ -330,7 +331,13 @@ pub fn rounded_box(half: &Vector3<f64>, corner_radius: f64, taper: f64) -> Resul
 /// A capped frustum (cone segment) from `a` (radius `r_a`) to `b` (radius
 /// `r_b`); either radius may be 0 for a cone. The cap centres are poles, so
 /// `a` and `b` are mesh vertices.
-pub fn frustum(a: &Point3<f64>, b: &Point3<f64>, r_a: f64, r_b: f64, segments: usize) -> Result<TriMesh, PrimitiveError> {
+pub fn frustum(
+    a: &Point3<f64>,
+    b: &Point3<f64>,
+    r_a: f64,
+    r_b: f64,
+    segments: usize,
+) -> Result<TriMesh, PrimitiveError> {
     let axis = b - a;
     let length = axis.norm();
     positive("frustum length", length)?;
@@ -447,7 +454,8 @@ mod tests {
         let rect = CrossSection::RoundedRect { half_u: 0.007, half_v: 0.004, corner_radius: 0.002, corner_segments: 3 };
         closed(&tube(&path, &rect, &Vector3::y()).unwrap());
         // A stadium (corner radius = half size) merges the arc ends.
-        let stadium = CrossSection::RoundedRect { half_u: 0.004, half_v: 0.004, corner_radius: 0.004, corner_segments: 4 };
+        let stadium =
+            CrossSection::RoundedRect { half_u: 0.004, half_v: 0.004, corner_radius: 0.004, corner_segments: 4 };
         closed(&tube(&path, &stadium, &Vector3::y()).unwrap());
     }
 
@@ -480,12 +488,7 @@ mod tests {
         let s = CrossSection::Ellipse { half_u: 1.0, half_v: 1.0, segments: 8 };
         assert!(tube(&[Point3::origin()], &s, &Vector3::x()).is_err());
         assert!(tube(&[Point3::origin(), Point3::new(0.0, 0.0, 1.0)], &s, &Vector3::z()).is_err());
-        assert!(tube(
-            &[Point3::origin(), Point3::new(0.0, 0.0, 1.0), Point3::origin()],
-            &s,
-            &Vector3::x()
-        )
-        .is_err());
+        assert!(tube(&[Point3::origin(), Point3::new(0.0, 0.0, 1.0), Point3::origin()], &s, &Vector3::x()).is_err());
         assert!(rounded_box(&Vector3::new(1.0, -1.0, 1.0), 0.0, 0.0).is_err());
         assert!(rounded_box(&Vector3::new(1.0, 1.0, 1.0), 0.0, 1.5).is_err());
         assert!(frustum(&Point3::origin(), &Point3::origin(), 1.0, 1.0, 8).is_err());
