@@ -159,9 +159,10 @@ fn trial(registrar: &Registrar, inst: &Instance, truth_surface: &[P3], view: usi
     // Baseline 2: non-rigid CPD of the placed canonical straight onto the view.
     let placed_surface = registrar.completed_shape(&canon);
     let placed_kp: Vec<P3> = canon_kp.clone();
+    let stride = (cloud.len() / 1500).max(1);
     let nr = cpd::non_rigid(
         &placed_surface.iter().step_by(4).copied().collect::<Vec<_>>(),
-        &cloud,
+        &cloud.iter().step_by(stride).copied().collect::<Vec<_>>(),
         &NonRigidOptions { em: EmOptions { w: 0.1, max_iters: 80, tol: 1e-5 }, beta: 0.35, lambda: 1.0, ..Default::default() },
     )
     .ok()?;

@@ -8,4 +8,4 @@ pub mod sample;
 
 pub use camera::{DepthCamera, DepthNoise, Intrinsics, PartialView, Scene};
 pub use mesh::{Topology, TriMesh};
-pub use sample::{sample_points, SurfacePoint, SurfaceSampler};
+pub use sample::{sample_points, sample_points_even, SurfacePoint, SurfaceSampler};

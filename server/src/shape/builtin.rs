@@ -11,7 +11,7 @@ pub fn artefact_path(cache_dir: &Path, category: Category) -> PathBuf {
 }
 
 /// Builds the space of a built-in category from its canonical and training instances.
-pub fn build(category: Category, opts: &BuildOptions, progress: impl FnMut(usize, usize)) -> Result<(ShapeSpace, BuildReport), SpaceError> {
+pub fn build(category: Category, opts: &BuildOptions, progress: impl Fn(usize, usize) + Sync) -> Result<(ShapeSpace, BuildReport), SpaceError> {
     let family = tools::family(category).map_err(|e| SpaceError::Artefact { path: category.name().into(), reason: e.to_string() })?;
     let canonical = family
         .iter()
@@ -25,7 +25,7 @@ pub fn build(category: Category, opts: &BuildOptions, progress: impl FnMut(usize
 
 /// Loads the cached artefact, or builds and caches it when it is missing,
 /// corrupt or of another format version (the reason is logged).
-pub fn load_or_build(category: Category, cache_dir: &Path, progress: impl FnMut(usize, usize)) -> Result<ShapeSpace, SpaceError> {
+pub fn load_or_build(category: Category, cache_dir: &Path, progress: impl Fn(usize, usize) + Sync) -> Result<ShapeSpace, SpaceError> {
     let path = artefact_path(cache_dir, category);
     match ShapeSpace::load(&path) {
         Ok(s) => return Ok(s),

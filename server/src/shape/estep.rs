@@ -6,12 +6,11 @@
 //! is never stored. Two evaluations of the same sums:
 //! - dense: every pair, streamed one data point at a time;
 //! - truncated: once σ is small, pairs farther than `cutoff_sigmas`·σ are
-//!   negligible (e^{-32} at 8σ); a k-d tree over X (built once, X is fixed)
-//!   finds the pairs that matter.
+//!   negligible (e^{-32} at 8σ); a uniform grid over X finds the pairs that
+//!   matter (see `grid.rs` for why not a k-d tree).
 
 use super::fastexp::exp_neg;
-use kiddo::immutable::float::kdtree::ImmutableKdTree;
-use kiddo::SquaredEuclidean;
+use super::grid::RadiusGrid;
 
 pub type P3 = [f64; 3];
 
@@ -30,14 +29,19 @@ pub struct Posteriors {
     pub neg_log_likelihood: f64,
 }
 
-/// Distance in σ beyond which pairs are dropped in truncated mode.
+/// Distance in σ beyond which pairs are dropped in truncated mode, by default:
+/// e^{-32} relative weight, below any effect on a fit.
 pub const CUTOFF_SIGMAS: f64 = 8.0;
 
 pub struct EStep {
     x: Vec<P3>,
-    tree: Option<ImmutableKdTree<f64, u32, 3, 32>>,
+    grid: RadiusGrid,
+    /// Radius the grid was last built for.
+    grid_radius: f64,
     /// Bounding radius of X around its centroid: decides dense or truncated.
     x_radius: f64,
+    /// Pairs farther than this many σ are dropped once that prunes most pairs.
+    pub cutoff_sigmas: f64,
     // Reused buffers.
     ys: [Vec<f64>; 3],
     row: Vec<f64>,
@@ -50,7 +54,7 @@ impl EStep {
         let n = x.len().max(1) as f64;
         let c = x.iter().fold([0.0; 3], |a, p| [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]);
         let x_radius = x.iter().map(|p| dist2(p, &c)).fold(0.0, f64::max).sqrt();
-        Self { x: x.to_vec(), tree: None, x_radius, ys: Default::default(), row: Vec::new(), den: Vec::new(), pairs: Vec::new() }
+        Self { x: x.to_vec(), grid: RadiusGrid::default(), grid_radius: 0.0, x_radius, cutoff_sigmas: CUTOFF_SIGMAS, ys: Default::default(), row: Vec::new(), den: Vec::new(), pairs: Vec::new() }
     }
 
     pub fn data(&self) -> &[P3] {
@@ -73,9 +77,9 @@ impl EStep {
             return;
         }
         let c = outlier_constant(sigma2, w, m, n);
-        let cutoff = CUTOFF_SIGMAS * sigma2.sqrt();
+        let cutoff = self.cutoff_sigmas * sigma2.sqrt();
         // Truncate when the cutoff ball holds a small share of the data volume.
-        if n >= 64 && cutoff < 0.35 * self.x_radius {
+        if n >= 64 && cutoff < 0.5 * self.x_radius {
             self.run_truncated(y, sigma2, c, cutoff * cutoff, out);
         } else {
             self.run_dense(y, sigma2, c, out);
@@ -92,46 +96,49 @@ impl EStep {
         }
         self.row.resize(m, 0.0);
         let k = -0.5 / sigma2;
-        let [yx, yy, yz] = &self.ys;
+        // Equal-length slices: no bounds checks, so both loops vectorise.
+        let (yx, yy, yz) = (&self.ys[0][..m], &self.ys[1][..m], &self.ys[2][..m]);
+        let p1 = &mut out.p1[..m];
+        let px = &mut out.px[..m];
         for (j, xn) in self.x.iter().enumerate() {
             let row = &mut self.row[..m];
-            let mut sum = 0.0;
-            for i in 0..m {
-                let (dx, dy, dz) = (xn[0] - yx[i], xn[1] - yy[i], xn[2] - yz[i]);
-                let e = exp_neg(k * (dx * dx + dy * dy + dz * dz));
-                row[i] = e;
-                sum += e;
+            for (((r, a), b), c) in row.iter_mut().zip(yx).zip(yy).zip(yz) {
+                let (dx, dy, dz) = (xn[0] - a, xn[1] - b, xn[2] - c);
+                *r = exp_neg(k * (dx * dx + dy * dy + dz * dz));
             }
+            let sum: f64 = row.iter().sum();
             let den = sum + c;
             out.neg_log_likelihood -= den.ln();
             let inv = 1.0 / den;
             out.pt1[j] = sum * inv;
-            for i in 0..m {
-                let p = row[i] * inv;
-                out.p1[i] += p;
-                let px = &mut out.px[i];
-                px[0] += p * xn[0];
-                px[1] += p * xn[1];
-                px[2] += p * xn[2];
+            for ((r, p1i), pxi) in row.iter().zip(p1.iter_mut()).zip(px.iter_mut()) {
+                let p = r * inv;
+                *p1i += p;
+                pxi[0] += p * xn[0];
+                pxi[1] += p * xn[1];
+                pxi[2] += p * xn[2];
             }
         }
     }
 
     fn run_truncated(&mut self, y: &[P3], sigma2: f64, c: f64, cutoff2: f64, out: &mut Posteriors) {
-        if self.tree.is_none() {
-            self.tree = Some(ImmutableKdTree::new_from_slice(&self.x));
+        let radius = cutoff2.sqrt();
+        // Rebuild when σ has shrunk enough that the cells hold far too much, or grown past them.
+        if radius > self.grid_radius || radius < 0.5 * self.grid_radius {
+            self.grid.build(&self.x, radius);
+            self.grid_radius = radius;
         }
-        let tree = self.tree.as_ref().expect("built above");
         let k = -0.5 / sigma2;
         self.pairs.clear();
         self.den.clear();
         self.den.resize(self.x.len(), 0.0);
+        let (grid, x, den, pairs) = (&self.grid, &self.x, &mut self.den, &mut self.pairs);
         for (i, yi) in y.iter().enumerate() {
-            for nb in tree.within_unsorted::<SquaredEuclidean>(yi, cutoff2) {
-                let e = exp_neg(k * nb.distance);
-                self.den[nb.item as usize] += e;
-                self.pairs.push((i as u32, nb.item, e));
-            }
+            grid.for_each_within(x, yi, cutoff2, |j, d2| {
+                let e = exp_neg(k * d2);
+                den[j as usize] += e;
+                pairs.push((i as u32, j, e));
+            });
         }
         for (j, d) in self.den.iter_mut().enumerate() {
             let sum = *d;

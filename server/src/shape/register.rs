@@ -70,10 +70,10 @@ impl Default for RegisterOptions {
             fit_latent: true,
             scale_range: (0.6, 1.6),
             outlier_weight: 0.1,
-            coarse_points: 100,
-            coarse_model_points: 120,
-            coarse_iters: 20,
-            fine_points: 500,
+            coarse_points: 80,
+            coarse_model_points: 100,
+            coarse_iters: 15,
+            fine_points: 400,
             fine_iters: 40,
             keep: 2,
             seed: 0,
@@ -132,7 +132,7 @@ impl Models {
         let surface = model(&space.surface);
         // Model subsets chosen on the canonical (not the mean) so both model kinds use the same points.
         let canonical: Vec<P3> = space.surface.iter().map(|p| space.norm.forward(p)).collect();
-        let fine_idx = farthest_points(&canonical, 500);
+        let fine_idx = farthest_points(&canonical, 400);
         let coarse_idx = farthest_points(&canonical, 120);
         Self { coarse: surface.select(&coarse_idx), fine: surface.select(&fine_idx), surface, keypoints: model(&kp) }
     }
@@ -169,11 +169,11 @@ impl Registrar {
 
         // Coarse: every hypothesis, mean shape, similarity only.
         let hyps = self.hypotheses(&fine_x, opts);
-        let mut scored: Vec<(f64, Pose)> = hyps
+        let mut scored: Vec<(f64, Pose, f64)> = hyps
             .iter()
             .map(|&pose| {
-                let fit = em(&coarse_model, &coarse_x, pose, vec![0.0; 0], None, opts, opts.coarse_iters, &self.space.norm);
-                (fit.nll, fit.pose)
+                let fit = em(&coarse_model, &coarse_x, pose, vec![0.0; 0], None, None, opts, opts.coarse_iters, &self.space.norm);
+                (fit.nll, fit.pose, fit.sigma2)
             })
             .collect();
         scored.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -182,9 +182,11 @@ impl Registrar {
         let q = if opts.fit_latent { self.space.modes() } else { 0 };
         let mut best: Option<Fit> = None;
         let mut iterations = 0;
-        for (_, pose) in scored.iter().take(opts.keep.max(1)) {
+        for (_, pose, sigma2) in scored.iter().take(opts.keep.max(1)) {
             let prior = opts.fit_latent.then_some(self.space.variances.as_slice());
-            let fit = em(&models.fine, &fine_x, *pose, vec![0.0; q], prior, opts, opts.fine_iters, &self.space.norm);
+            // Start at the coarse fit's σ² (loosened for the finer model): re-annealing
+            // from the data's spread would redo the coarse stage at full resolution.
+            let fit = em(&models.fine, &fine_x, *pose, vec![0.0; q], prior, Some(2.0 * sigma2), opts, opts.fine_iters, &self.space.norm);
             iterations += fit.iterations;
             if best.as_ref().is_none_or(|b| fit.nll < b.nll) {
                 best = Some(fit);
@@ -329,14 +331,26 @@ struct Fit {
 
 /// EM over pose (and latent, when `prior` is given).
 #[allow(clippy::too_many_arguments)]
-fn em(model: &LinearModel, x: &[P3], mut pose: Pose, mut latent: Vec<f64>, prior: Option<&[f64]>, opts: &RegisterOptions, iters: usize, norm: &Normalization) -> Fit {
+fn em(
+    model: &LinearModel,
+    x: &[P3],
+    mut pose: Pose,
+    mut latent: Vec<f64>,
+    prior: Option<&[f64]>,
+    sigma2_init: Option<f64>,
+    opts: &RegisterOptions,
+    iters: usize,
+    norm: &Normalization,
+) -> Fit {
     let q = latent.len();
     let mut estep = EStep::new(x);
+    // A fit needs the pairs within a few σ only (e^{-12.5} beyond 5σ).
+    estep.cutoff_sigmas = 5.0;
     let mut post = Posteriors::default();
     let mut y_model = Vec::with_capacity(model.len());
     model.evaluate_into(&latent, &mut y_model);
     let mut y_world: Vec<P3> = y_model.iter().map(|y| pose.apply(y)).collect();
-    let mut sigma2 = initial_sigma2(x, &y_world);
+    let mut sigma2 = sigma2_init.unwrap_or_else(|| initial_sigma2(x, &y_world));
     let (smin, smax) = (opts.scale_range.0 * norm.scale, opts.scale_range.1 * norm.scale);
     let (mut prev, mut nll, mut it) = (f64::INFINITY, f64::INFINITY, 0);
     while it < iters {
