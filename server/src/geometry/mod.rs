@@ -1,8 +1,9 @@
-//! Geometry the rest of the engine stands on: meshes, surface sampling,
-//! the virtual depth camera.
+//! Geometry the rest of the engine stands on: meshes, watertight primitives,
+//! surface sampling, the virtual depth camera.
 
 pub mod camera;
 pub mod mesh;
+pub mod primitives;
 pub mod sample;
 
 pub use camera::{DepthCamera, DepthNoise, Intrinsics, PartialView, Scene};
