@@ -34,10 +34,34 @@ pub struct SphereSample {
     pub primitive: usize,
 }
 
+/// The spheres of one primitive, with a bound for culling them together.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SphereGroup {
+    pub link: LinkId,
+    /// Centre of the group in the link frame.
+    pub center_link: Vector3<f64>,
+    /// Largest distance from the centre to any point of a member sphere.
+    pub reach: f64,
+    /// Members, as a range of [`HandSpheres::spheres`].
+    pub members: std::ops::Range<usize>,
+}
+
 /// Spheres covering all collision primitives of a hand.
 #[derive(Clone, Debug)]
 pub struct HandSpheres {
     spheres: Vec<SphereSample>,
+    groups: Vec<SphereGroup>,
+}
+
+/// A sphere closer to the scene than the margin: one penetration residual.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Contact {
+    pub sphere: usize,
+    pub center_world: Point3<f64>,
+    /// sd − r − margin (< 0), metres.
+    pub residual: f64,
+    /// World gradient of the signed distance at the centre (unit).
+    pub normal_world: Vector3<f64>,
 }
 
 impl HandSpheres {
@@ -46,7 +70,9 @@ impl HandSpheres {
     pub fn new(hand: &HandModel, spacing_ratio: f64) -> Self {
         let s = spacing_ratio.clamp(0.1, 1.5);
         let mut spheres = Vec::new();
+        let mut groups = Vec::new();
         for (primitive, prim) in hand.collision_primitives().iter().enumerate() {
+            let first = spheres.len();
             let mut push = |local: Vector3<f64>, radius: f64| {
                 let center_link = (prim.origin * Point3::from(local)).coords;
                 spheres.push(SphereSample { link: prim.link, center_link, radius, primitive });
@@ -72,12 +98,59 @@ impl HandSpheres {
                     }
                 }
             }
+            let members = &spheres[first..];
+            let center_link = members.iter().map(|m| m.center_link).sum::<Vector3<f64>>() / members.len() as f64;
+            let reach = members.iter().map(|m| (m.center_link - center_link).norm() + m.radius).fold(0.0, f64::max);
+            groups.push(SphereGroup { link: prim.link, center_link, reach, members: first..spheres.len() });
         }
-        Self { spheres }
+        Self { spheres, groups }
     }
 
     pub fn spheres(&self) -> &[SphereSample] {
         &self.spheres
+    }
+    /// One group per collision primitive.
+    pub fn groups(&self) -> &[SphereGroup] {
+        &self.groups
+    }
+
+    /// Appends to `out` every sphere closer than `margin` to the tool or the
+    /// table, for the state in `kin` (two entries if it is near both). A
+    /// group is skipped whole when its centre is farther from the scene than
+    /// its reach plus the margin: signed distance is 1-Lipschitz, so no member
+    /// can then be near. `out` is not cleared; with capacity for two entries
+    /// per sphere it never reallocates.
+    pub fn collect_contacts(&self, kin: &HandKinematics, scene: &Scene, margin: f64, out: &mut Vec<Contact>) {
+        for g in &self.groups {
+            let cg = kin.link_pose(g.link) * Point3::from(g.center_link);
+            let clear = g.reach + margin;
+            if let Some(tool) = scene.tool {
+                let near = tool.signed_distance(&cg, clear + 1e-6).is_some_and(|(sd, _)| sd < clear);
+                if near {
+                    for i in g.members.clone() {
+                        let c = self.center_world(kin, i);
+                        let r = self.spheres[i].radius;
+                        if let Some((sd, n)) = tool.signed_distance(&c, r + margin + 1e-6) {
+                            let residual = sd - r - margin;
+                            if residual < 0.0 {
+                                out.push(Contact { sphere: i, center_world: c, residual, normal_world: n });
+                            }
+                        }
+                    }
+                }
+            }
+            if let Some(h) = scene.table_height_world {
+                if cg.z - h < clear {
+                    for i in g.members.clone() {
+                        let c = self.center_world(kin, i);
+                        let residual = c.z - h - self.spheres[i].radius - margin;
+                        if residual < 0.0 {
+                            out.push(Contact { sphere: i, center_world: c, residual, normal_world: Vector3::z() });
+                        }
+                    }
+                }
+            }
+        }
     }
 
     /// World centre of sphere `i` for the state in `kin`.

@@ -20,13 +20,13 @@
 
 use std::time::Instant;
 
-use nalgebra::{Isometry3, Matrix3xX, Point3, Vector3, Vector6};
+use nalgebra::{Isometry3, Matrix3xX, Point3, Vector6};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
 use super::linalg::{cholesky_solve_in_place, fit_rigid};
-use super::penetration::{clearance, Clearance, HandSpheres, Scene};
+use super::penetration::{clearance, Clearance, Contact, HandSpheres, Scene};
 use super::{residual_stats, Grasp, GraspError, GraspTargets, SolveReport};
 use crate::hand::{perturb_wrist, HandKinematics, HandModel, WRIST_DOF};
 
@@ -118,6 +118,9 @@ pub struct GraspSolver {
     q_trial: Vec<f64>,
     q_best: Vec<f64>,
     kp_local: Vec<Point3<f64>>,
+    /// Penetration residuals at the current point and at the trial point.
+    contacts: Vec<Contact>,
+    contacts_trial: Vec<Contact>,
     point_jac: Matrix3xX<f64>,
 }
 
@@ -133,8 +136,10 @@ impl GraspSolver {
     pub fn new(hand: &HandModel, options: SolveOptions) -> Self {
         let n = WRIST_DOF + hand.num_actuated();
         let na = hand.num_actuated();
+        let spheres = HandSpheres::new(hand, options.penetration.sphere_spacing);
+        let n_spheres = spheres.spheres().len();
         Self {
-            spheres: HandSpheres::new(hand, options.penetration.sphere_spacing),
+            spheres,
             kin: HandKinematics::new(hand),
             hand: hand.clone(),
             options,
@@ -151,6 +156,8 @@ impl GraspSolver {
             q_trial: vec![0.0; na],
             q_best: vec![0.0; na],
             kp_local: vec![Point3::origin(); hand.keypoints().len()],
+            contacts: Vec::with_capacity(2 * n_spheres),
+            contacts_trial: Vec::with_capacity(2 * n_spheres),
             point_jac: Matrix3xX::zeros(n),
         }
     }
@@ -284,7 +291,8 @@ impl GraspSolver {
         let opts = self.options.clone();
         let n = self.n;
         let mut cost = self.cost(targets, scene, &wrist, false);
-        self.linearize(targets, scene);
+        std::mem::swap(&mut self.contacts, &mut self.contacts_trial);
+        self.linearize(targets);
         for j in 0..n {
             self.scale[j] = self.a[j * n + j];
         }
@@ -345,9 +353,10 @@ impl GraspSolver {
                     wrist = trial;
                     self.q.copy_from_slice(&self.q_trial);
                     cost = trial_cost;
+                    std::mem::swap(&mut self.contacts, &mut self.contacts_trial);
                     lambda *= (1.0 - (2.0 * rho - 1.0).powi(3)).max(1.0 / 3.0);
                     nu = 2.0;
-                    self.linearize(targets, scene);
+                    self.linearize(targets);
                     for j in 0..n {
                         self.scale[j] = self.scale[j].max(self.a[j * n + j]);
                     }
@@ -410,7 +419,7 @@ impl GraspSolver {
 
     /// ½·(weighted squared keypoint error + penetration penalty) at
     /// (`wrist`, `self.q_trial` if `trial` else `self.q`); leaves the
-    /// kinematics at that configuration.
+    /// kinematics at that configuration and its contacts in `contacts_trial`.
     fn cost(&mut self, targets: &GraspTargets, scene: &Scene, wrist: &Isometry3<f64>, trial: bool) -> f64 {
         let q = if trial { &self.q_trial } else { &self.q };
         self.kin.update(&self.hand, wrist, q);
@@ -418,37 +427,18 @@ impl GraspSolver {
         for ((p, t), w) in self.kin.keypoints().iter().zip(&targets.keypoints_world).zip(&targets.weights) {
             sum += w * (p - t).norm_squared();
         }
+        self.contacts_trial.clear();
         let pen = &self.options.penetration;
         if pen.enabled && !scene.is_empty() {
-            for i in 0..self.spheres.spheres().len() {
-                if let Some((e, _)) = self.penetration_residual(scene, i, Residual::Tool) {
-                    sum += pen.weight * e * e;
-                }
-                if let Some((e, _)) = self.penetration_residual(scene, i, Residual::Table) {
-                    sum += pen.weight * e * e;
-                }
-            }
+            self.spheres.collect_contacts(&self.kin, scene, pen.margin_m, &mut self.contacts_trial);
+            sum += pen.weight * self.contacts_trial.iter().map(|c| c.residual * c.residual).sum::<f64>();
         }
         0.5 * sum
     }
 
-    /// Negative clearance (below the margin) of sphere `i` and the world
-    /// gradient of its signed distance, or `None` when clear.
-    fn penetration_residual(&self, scene: &Scene, i: usize, which: Residual) -> Option<(f64, Vector3<f64>)> {
-        let s = &self.spheres.spheres()[i];
-        let margin = self.options.penetration.margin_m;
-        let c = self.spheres.center_world(&self.kin, i);
-        let (sd, grad) = match which {
-            Residual::Tool => scene.tool?.signed_distance(&c, s.radius + margin + 1e-6)?,
-            Residual::Table => (c.z - scene.table_height_world?, Vector3::z()),
-        };
-        let e = sd - s.radius - margin;
-        (e < 0.0).then_some((e, grad))
-    }
-
     /// Normal equations JᵀWJ and gradient JᵀWr at the configuration the
     /// kinematics hold (the last accepted point).
-    fn linearize(&mut self, targets: &GraspTargets, scene: &Scene) {
+    fn linearize(&mut self, targets: &GraspTargets) {
         let n = self.n;
         self.a.fill(0.0);
         self.g.fill(0.0);
@@ -468,34 +458,23 @@ impl GraspSolver {
                 }
             }
         }
-        let pen = self.options.penetration.clone();
-        if pen.enabled && !scene.is_empty() {
-            for i in 0..self.spheres.spheres().len() {
-                for which in [Residual::Tool, Residual::Table] {
-                    let Some((e, grad)) = self.penetration_residual(scene, i, which) else { continue };
-                    let c = self.spheres.center_world(&self.kin, i);
-                    let link = self.spheres.spheres()[i].link;
-                    self.kin.point_jacobian(&self.hand, link, &c, &mut self.point_jac);
-                    // Row of the scalar residual: ∇sdᵀ·J_point.
-                    for a in 0..n {
-                        self.row[a] = grad.dot(&self.point_jac.column(a));
-                    }
-                    for a in 0..n {
-                        self.g[a] += pen.weight * self.row[a] * e;
-                        for b in 0..=a {
-                            self.a[a * n + b] += pen.weight * self.row[a] * self.row[b];
-                        }
-                    }
+        // The contacts found when this point's cost was evaluated.
+        let weight = self.options.penetration.weight;
+        for c in &self.contacts {
+            let link = self.spheres.spheres()[c.sphere].link;
+            self.kin.point_jacobian(&self.hand, link, &c.center_world, &mut self.point_jac);
+            // Row of the scalar residual: ∇sdᵀ·J_point.
+            for a in 0..n {
+                self.row[a] = c.normal_world.dot(&self.point_jac.column(a));
+            }
+            for a in 0..n {
+                self.g[a] += weight * self.row[a] * c.residual;
+                for b in 0..=a {
+                    self.a[a * n + b] += weight * self.row[a] * self.row[b];
                 }
             }
         }
     }
-}
-
-#[derive(Clone, Copy)]
-enum Residual {
-    Tool,
-    Table,
 }
 
 /// Marquardt scaling with a floor, so a variable no residual sees (a
