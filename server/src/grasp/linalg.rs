@@ -9,7 +9,7 @@ use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaterni
 pub fn fit_rigid(src: &[Point3<f64>], dst: &[Point3<f64>], weights: &[f64]) -> Isometry3<f64> {
     assert!(src.len() == dst.len() && src.len() == weights.len(), "fit_rigid: lengths");
     let total: f64 = weights.iter().sum();
-    if !(total > 0.0) {
+    if total.is_nan() || total <= 0.0 {
         return Isometry3::identity();
     }
     let mut cs = Vector3::zeros();
@@ -46,7 +46,7 @@ pub fn cholesky_solve_in_place(a: &mut [f64], n: usize, b: &mut [f64]) -> bool {
         for k in 0..j {
             d -= a[j * n + k] * a[j * n + k];
         }
-        if !(d > 0.0) || !d.is_finite() {
+        if d.is_nan() || d <= 0.0 || !d.is_finite() {
             return false;
         }
         let d = d.sqrt();

@@ -201,7 +201,8 @@ impl ToolCollider {
         if !mesh_tool.vertices.iter().all(|p| p.coords.iter().all(|v| v.is_finite())) {
             return Err(bad("a vertex is not finite".into()));
         }
-        if let Some(t) = mesh_tool.triangles.iter().find(|t| t.iter().any(|&i| i as usize >= mesh_tool.vertices.len())) {
+        if let Some(t) = mesh_tool.triangles.iter().find(|t| t.iter().any(|&i| i as usize >= mesh_tool.vertices.len()))
+        {
             return Err(bad(format!("triangle {t:?} indexes past the {} vertices", mesh_tool.vertices.len())));
         }
         let topo = mesh_tool.topology();

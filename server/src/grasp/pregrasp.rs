@@ -33,7 +33,12 @@ pub struct PreGrasp {
     pub min_clearance_m: f64,
 }
 
-pub fn pregrasp(hand: &HandModel, grasp: &Grasp, scene: &Scene, options: &PreGraspOptions) -> Result<PreGrasp, GraspError> {
+pub fn pregrasp(
+    hand: &HandModel,
+    grasp: &Grasp,
+    scene: &Scene,
+    options: &PreGraspOptions,
+) -> Result<PreGrasp, GraspError> {
     grasp.validate(hand)?;
     if !(options.backoff_m.is_finite() && options.joint_fraction.is_finite()) {
         return Err(GraspError::NonFinite { what: "pre-grasp options" });

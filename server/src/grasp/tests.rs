@@ -112,10 +112,15 @@ fn reachable_targets_are_recovered() {
     assert_eq!(fails(&cold_res), 0);
 }
 
-
 /// Centroid-based cold start: the open hand, its keypoint centroid on the
 /// targets' centroid, turned `angle_rad` away from the true orientation.
-fn centroid_start(hand: &HandModel, truth: &Grasp, targets: &[Point3<f64>], rng: &mut ChaCha8Rng, angle_rad: f64) -> Grasp {
+fn centroid_start(
+    hand: &HandModel,
+    truth: &Grasp,
+    targets: &[Point3<f64>],
+    rng: &mut ChaCha8Rng,
+    angle_rad: f64,
+) -> Grasp {
     let rot = UnitQuaternion::from_scaled_axis(angle_rad * random_unit(rng)) * truth.wrist_pose_world.rotation;
     let open = Grasp::open(hand, Isometry3::from_parts(Translation3::identity(), rot));
     let mean = |ps: &[Point3<f64>]| ps.iter().map(|p| p.coords).sum::<Vector3<f64>>() / ps.len() as f64;
@@ -135,7 +140,10 @@ fn reachable_targets_from_a_centroid_start() {
         let targets = GraspTargets::uniform(truth.keypoints_world(&hand));
         let start = centroid_start(&hand, &truth, &targets.keypoints_world, &mut rng, 30f64.to_radians());
         let (grasp, report) = solver.solve(&targets, &start, &Scene::default()).unwrap();
-        assert!((report.residual_mm.mean - 10.0 * task_space_distance_cm(&hand, &grasp, &targets.keypoints_world)).abs() < 1e-9);
+        assert!(
+            (report.residual_mm.mean - 10.0 * task_space_distance_cm(&hand, &grasp, &targets.keypoints_world)).abs()
+                < 1e-9
+        );
         ms.push(report.elapsed_ms);
         res.push(report.residual_mm.mean);
         starts += report.starts;
@@ -205,7 +213,10 @@ fn unreachable_targets_return_the_best_grasp() {
     let targets = GraspTargets::uniform(kps.iter().map(|p| Point3::from(c + 1.5 * (p.coords - c))).collect());
     let warm = solver.cold_start(&targets).unwrap();
     let (grasp, report) = solver.solve(&targets, &warm, &Scene::default()).unwrap();
-    println!("1.5x targets: residual {:?}, starts {}, iterations {}", report.residual_mm, report.starts, report.iterations);
+    println!(
+        "1.5x targets: residual {:?}, starts {}, iterations {}",
+        report.residual_mm, report.starts, report.iterations
+    );
     assert_eq!(report.starts, solver.options().starts, "no start fits exactly, so all run");
     assert!(report.residual_mm.mean > 5.0 && report.residual_mm.mean.is_finite());
     assert!(report.converged);
@@ -323,10 +334,8 @@ fn test_meshes_are_closed_and_outward() {
 
 #[test]
 fn tool_signed_distance_matches_a_box() {
-    let pose = Isometry3::from_parts(
-        Translation3::new(0.3, -0.2, 0.5),
-        UnitQuaternion::from_euler_angles(0.3, -0.4, 1.1),
-    );
+    let pose =
+        Isometry3::from_parts(Translation3::new(0.3, -0.2, 0.5), UnitQuaternion::from_euler_angles(0.3, -0.4, 1.1));
     let half = Vector3::new(0.05, 0.03, 0.08);
     let tool = ToolCollider::new(&box_mesh(half), pose).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(1);
@@ -371,7 +380,8 @@ fn cylinder_scene(hand: &HandModel, wrist: Isometry3<f64>, depth_m: f64) -> (Gra
 #[test]
 fn penetration_term_keeps_fingers_on_the_surface() {
     let hand = sih();
-    let wrist = Isometry3::from_parts(Translation3::new(0.2, -0.1, 0.4), UnitQuaternion::from_euler_angles(0.4, 0.2, -0.7));
+    let wrist =
+        Isometry3::from_parts(Translation3::new(0.2, -0.1, 0.4), UnitQuaternion::from_euler_angles(0.4, 0.2, -0.7));
     let (truth, mesh, pose) = cylinder_scene(&hand, wrist, 0.006);
     let tool = ToolCollider::new(&mesh, pose).unwrap();
     let scene = Scene { tool: Some(&tool), table_height_world: None };
@@ -419,7 +429,8 @@ fn table_plane_is_respected() {
 #[test]
 fn pregrasp_is_clear_and_farther_than_the_grasp() {
     let hand = sih();
-    let wrist = Isometry3::from_parts(Translation3::new(0.0, 0.1, 0.3), UnitQuaternion::from_euler_angles(-0.3, 0.5, 0.2));
+    let wrist =
+        Isometry3::from_parts(Translation3::new(0.0, 0.1, 0.3), UnitQuaternion::from_euler_angles(-0.3, 0.5, 0.2));
     let (truth, mesh, pose) = cylinder_scene(&hand, wrist, 0.004);
     let tool = ToolCollider::new(&mesh, pose).unwrap();
     // A table just below the tool.
@@ -452,11 +463,14 @@ fn pregrasp_is_clear_and_farther_than_the_grasp() {
 #[test]
 fn baselines_on_a_constructed_case() {
     let hand = sih();
-    let canonical_tool = Isometry3::from_parts(Translation3::new(0.5, 0.0, 0.1), UnitQuaternion::from_euler_angles(0.0, 0.0, 0.3));
-    let canonical_wrist = canonical_tool * Isometry3::from_parts(Translation3::new(0.0, -0.1, 0.05), UnitQuaternion::from_euler_angles(1.2, 0.1, 0.0));
+    let canonical_tool =
+        Isometry3::from_parts(Translation3::new(0.5, 0.0, 0.1), UnitQuaternion::from_euler_angles(0.0, 0.0, 0.3));
+    let canonical_wrist = canonical_tool
+        * Isometry3::from_parts(Translation3::new(0.0, -0.1, 0.05), UnitQuaternion::from_euler_angles(1.2, 0.1, 0.0));
     let canonical = Grasp::new(&hand, canonical_wrist, vec![-0.6, -0.7, -0.8, -0.9, 0.5]);
     let demo = canonical.keypoints_world(&hand);
-    let registered = Isometry3::from_parts(Translation3::new(-0.2, 0.4, 0.1), UnitQuaternion::from_euler_angles(0.2, -0.1, 1.4));
+    let registered =
+        Isometry3::from_parts(Translation3::new(-0.2, 0.4, 0.1), UnitQuaternion::from_euler_angles(0.2, -0.1, 1.4));
     let tool_motion = registered * canonical_tool.inverse();
 
     // The observed tool is the canonical one, moved by the registered pose:
@@ -486,13 +500,17 @@ fn baselines_on_a_constructed_case() {
     // the best rigid placement, so no rigid placement (CG's included) beats it,
     // and the full solve (joints free) beats WP.
     let c = demo.iter().map(|p| tool_motion * p).map(|p| p.coords).sum::<Vector3<f64>>() / demo.len() as f64;
-    let targets = GraspTargets::uniform(demo.iter().map(|p| Point3::from(c + 1.2 * ((tool_motion * p).coords - c))).collect());
+    let targets =
+        GraspTargets::uniform(demo.iter().map(|p| Point3::from(c + 1.2 * ((tool_motion * p).coords - c))).collect());
     let cg = baseline_cg(&hand, &canonical, &canonical_tool, &registered, &targets).unwrap();
     let wp = baseline_wp(&hand, &canonical, &targets).unwrap();
     let mut solver = GraspSolver::new(&hand, SolveOptions::default());
     let (solved, _) = solver.solve(&targets, &cg.grasp, &Scene::default()).unwrap();
     let ours = task_space_distance_cm(&hand, &solved, &targets.keypoints_world);
-    println!("spread 1.2: cg {:.3} cm, wp {:.3} cm, ours {:.3} cm", cg.task_space_distance_cm, wp.task_space_distance_cm, ours);
+    println!(
+        "spread 1.2: cg {:.3} cm, wp {:.3} cm, ours {:.3} cm",
+        cg.task_space_distance_cm, wp.task_space_distance_cm, ours
+    );
     assert!(wp.task_space_distance_cm <= cg.task_space_distance_cm + 1e-12);
     assert!(ours < wp.task_space_distance_cm);
 }
@@ -530,7 +548,10 @@ fn bad_input_is_a_clear_error() {
     let targets = GraspTargets::uniform(kps);
     let mut bad = good.clone();
     bad.actuated.pop();
-    assert_eq!(solver.solve(&targets, &bad, &none).unwrap_err(), GraspError::WrongActuatedCount { expected: 5, got: 4 });
+    assert_eq!(
+        solver.solve(&targets, &bad, &none).unwrap_err(),
+        GraspError::WrongActuatedCount { expected: 5, got: 4 }
+    );
     let mut bad = good.clone();
     bad.wrist_pose_world.translation.x = f64::INFINITY;
     assert_eq!(solver.solve(&targets, &bad, &none).unwrap_err(), GraspError::NonFiniteGrasp);
@@ -543,4 +564,62 @@ fn bad_input_is_a_clear_error() {
     let err = ToolCollider::new(&open, Isometry3::identity()).unwrap_err();
     assert!(err.to_string().contains("boundary"), "{err}");
     assert!(ToolCollider::new(&TriMesh::default(), Isometry3::identity()).is_err());
+}
+
+// ------------------------------------------------------------ allocation
+
+/// Counts heap allocations per thread, so a test can see that the solver's
+/// iterations allocate nothing (tests run on parallel threads).
+struct CountingAlloc;
+
+thread_local! {
+    static ALLOCATIONS: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
+}
+
+unsafe impl std::alloc::GlobalAlloc for CountingAlloc {
+    unsafe fn alloc(&self, layout: std::alloc::Layout) -> *mut u8 {
+        let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
+        unsafe { std::alloc::System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: std::alloc::Layout) {
+        unsafe { std::alloc::System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: std::alloc::Layout, new_size: usize) -> *mut u8 {
+        let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
+        unsafe { std::alloc::System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: CountingAlloc = CountingAlloc;
+
+fn allocations_during(f: impl FnOnce()) -> usize {
+    let before = ALLOCATIONS.with(|c| c.get());
+    f();
+    ALLOCATIONS.with(|c| c.get()) - before
+}
+
+#[test]
+fn iterations_do_not_allocate() {
+    let hand = sih();
+    let wrist =
+        Isometry3::from_parts(Translation3::new(0.2, -0.1, 0.4), UnitQuaternion::from_euler_angles(0.4, 0.2, -0.7));
+    let (truth, mesh, pose) = cylinder_scene(&hand, wrist, 0.006);
+    let tool = ToolCollider::new(&mesh, pose).unwrap();
+    let targets = GraspTargets::uniform(truth.keypoints_world(&hand));
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let warm = perturbed(&hand, &truth, &mut rng, 0.02, 0.2, 0.2);
+    for scene in [Scene::default(), Scene { tool: Some(&tool), table_height_world: Some(pose.translation.z - 0.1) }] {
+        let mut counts = vec![];
+        for (starts, max_iterations) in [(1, 1), (1, 3), (8, 500)] {
+            let mut solver = GraspSolver::new(&hand, SolveOptions { starts, max_iterations, ..Default::default() });
+            let mut iterations = 0;
+            let n = allocations_during(|| iterations = solver.solve(&targets, &warm, &scene).unwrap().1.iterations);
+            counts.push((n, iterations));
+        }
+        println!("allocations (count, iterations): {counts:?}");
+        // The returned grasp's two vectors, whatever the work done.
+        assert!(counts.iter().all(|&(n, _)| n == counts[0].0), "{counts:?}");
+        assert!(counts[0].0 <= 2);
+    }
 }
