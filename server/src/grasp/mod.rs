@@ -18,6 +18,7 @@
 //! paper's task-space distance centimetres) where the field name says so.
 
 pub mod baselines;
+pub mod demo;
 pub mod linalg;
 pub mod penetration;
 pub mod pregrasp;
@@ -32,6 +33,7 @@ use thiserror::Error;
 use crate::hand::{HandKinematics, HandModel};
 
 pub use baselines::{baseline_cg, baseline_wp, BaselineGrasp};
+pub use demo::{close_until_contact, CloseOptions, ClosedGrasp, Demonstration, NamedPoint, PoseFile};
 pub use penetration::{Clearance, HandSpheres, Scene, ToolCollider};
 pub use pregrasp::{pregrasp, PreGrasp, PreGraspOptions};
 pub use solver::{GraspSolver, PenetrationOptions, SolveOptions};
@@ -170,6 +172,10 @@ pub enum GraspError {
     NonFiniteGrasp,
     #[error("tool mesh: {reason}")]
     BadToolMesh { reason: String },
+    #[error("the open hand already pierces the scene by {depth_mm:.2} mm at this wrist pose")]
+    OpenHandPenetrates { depth_mm: f64 },
+    #[error("invalid option {what}: {reason}")]
+    InvalidOption { what: &'static str, reason: String },
     #[error("{what} is not finite")]
     NonFinite { what: &'static str },
 }

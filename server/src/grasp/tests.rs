@@ -566,6 +566,85 @@ fn bad_input_is_a_clear_error() {
     assert!(ToolCollider::new(&TriMesh::default(), Isometry3::identity()).is_err());
 }
 
+// ------------------------------------------------------------ demonstrations
+
+#[test]
+fn close_until_contact_rests_fingers_on_the_tool() {
+    let hand = sih();
+    let wrist =
+        Isometry3::from_parts(Translation3::new(0.1, 0.2, 0.3), UnitQuaternion::from_euler_angles(0.2, -0.5, 0.9));
+    // A cylinder across the palm, 5 mm in front of it, under the fingers.
+    let radius = 0.025;
+    let axis_palm = Isometry3::translation(-0.005, 0.018 + radius + 0.005, 0.17);
+    let tool = ToolCollider::new(&cylinder_x_mesh(radius, 0.07, 64), wrist * axis_palm).unwrap();
+    let scene = Scene { tool: Some(&tool), table_height_world: None };
+    let opts = CloseOptions::default();
+    let closed = close_until_contact(&hand, &wrist, &scene, &opts).unwrap();
+    println!(
+        "closed on a cylinder: {:?} in contact {:?}, clearance {:.2e} m",
+        closed.grasp.actuated, closed.in_contact, closed.min_clearance_m
+    );
+    // The four fingers' drives close on it and stop touching it.
+    assert_eq!(&closed.in_contact[..3], &[true, true, true]);
+    assert!(closed.min_clearance_m >= 0.0 && closed.min_clearance_m <= opts.tolerance_m);
+    let mut solver = GraspSolver::new(&hand, SolveOptions::default());
+    for k in 0..3 {
+        // Each finger in contact is within tolerance of the surface.
+        let mut q = closed.grasp.actuated.clone();
+        q[k] += -0.02; // a little further closed pierces
+        let c = solver.clearance(&Grasp::new(&hand, wrist, q), &scene);
+        assert!(c.min_clearance_m < 0.0, "finger {k} was not touching");
+    }
+    // The demonstration is a feasible grasp: solving for its own keypoints
+    // with the penetration term returns it.
+    let targets = GraspTargets::uniform(closed.grasp.keypoints_world(&hand));
+    let (g, report) = solver.solve(&targets, &closed.grasp, &scene).unwrap();
+    assert!(report.residual_mm.mean < 1e-3 && report.penetration_mm < 1e-3, "{report:?}");
+    assert!((g.wrist_pose_world.to_homogeneous() - wrist.to_homogeneous()).abs().max() < 1e-6);
+
+    // Nothing in reach: every joint closes fully.
+    let far = close_until_contact(&hand, &wrist, &Scene::default(), &opts).unwrap();
+    assert_eq!(far.in_contact, vec![false; 5]);
+    assert_eq!(far.grasp.actuated, vec![-1.571, -1.571, -1.571, -1.571, 1.571]);
+
+    // A wrist pose whose open hand is inside the tool is refused.
+    let inside = wrist * Isometry3::translation(0.0, 0.03, 0.0);
+    assert!(matches!(close_until_contact(&hand, &inside, &scene, &opts), Err(GraspError::OpenHandPenetrates { .. })));
+    let bad = CloseOptions { tolerance_m: 0.0, ..Default::default() };
+    assert!(matches!(close_until_contact(&hand, &wrist, &scene, &bad), Err(GraspError::InvalidOption { .. })));
+
+    // Recorded in the tool frame, it comes back wherever the tool goes.
+    let demo = Demonstration::new(&hand, "test/cylinder", &closed.grasp, tool.pose_world());
+    let json = serde_json::to_string_pretty(&demo).unwrap();
+    let back: Demonstration = serde_json::from_str(&json).unwrap();
+    // serde_json's default float parsing may differ in the last bit.
+    let close = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-15);
+    assert_eq!((&back.hand, &back.tool), (&demo.hand, &demo.tool));
+    assert!(close(&back.wrist_pose_tool.translation, &demo.wrist_pose_tool.translation));
+    assert!(close(&back.wrist_pose_tool.rotation_xyzw, &demo.wrist_pose_tool.rotation_xyzw));
+    assert!(back.actuated.keys().eq(demo.actuated.keys()));
+    assert!(close(
+        &back.actuated.values().copied().collect::<Vec<_>>(),
+        &demo.actuated.values().copied().collect::<Vec<_>>()
+    ));
+    for (a, b) in back.keypoints_tool.iter().zip(&demo.keypoints_tool) {
+        assert!(a.name == b.name && close(&a.position, &b.position));
+    }
+    let elsewhere =
+        Isometry3::from_parts(Translation3::new(-0.3, 0.1, 0.0), UnitQuaternion::from_euler_angles(0.0, 0.0, 2.0));
+    let g = back.grasp_at(&hand, &elsewhere).unwrap();
+    let kps_tool = back.keypoints(&hand).unwrap();
+    for (p, k) in g.keypoints_world(&hand).iter().zip(&kps_tool) {
+        assert!((p - elsewhere * k).norm() < 1e-9);
+    }
+    let mut wrong = back.clone();
+    wrong.keypoints_tool.swap(0, 1);
+    assert!(wrong.keypoints(&hand).is_err());
+    let mut wrong = back.clone();
+    wrong.actuated.remove("palm_to_if_proximal");
+    assert!(wrong.grasp_at(&hand, &elsewhere).is_err());
+}
+
 // ------------------------------------------------------------ allocation
 
 /// Counts heap allocations per thread, so a test can see that the solver's
