@@ -66,6 +66,8 @@ pub struct SplitReport {
     pub cpd_partial: MethodErrors,
     pub fit_ms: FitTimes,
     pub confident_fraction: f64,
+    /// Angle between the estimated and the true tool orientation (ours).
+    pub rotation_error_deg: Percentiles,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -81,6 +83,7 @@ struct Trial {
     chamfer: [f64; 3],
     fit_ms: f64,
     confident: bool,
+    rotation_error_deg: f64,
 }
 
 /// Runs the evaluation on the instances of one split.
@@ -111,6 +114,7 @@ pub fn evaluate(registrar: &Registrar, instances: &[&Instance], split: Split, op
         cpd_partial: collect(2),
         fit_ms: FitTimes { p50: times.0, p99: times.1, max: times.2 },
         confident_fraction: trials.iter().filter(|t| t.confident).count() as f64 / trials.len().max(1) as f64,
+        rotation_error_deg: percentiles(trials.iter().map(|t| t.rotation_error_deg).collect()),
     }
 }
 
@@ -169,6 +173,7 @@ fn trial(registrar: &Registrar, inst: &Instance, truth_surface: &[P3], view: usi
     let cpd_kp = nr.field.apply(&placed_kp);
     let cpd_shape = nr.field.apply(&cpd::to_p3(&placed_surface));
 
+    let rotation_error_deg = (reg.rotation_cloud_from_canonical * rot.inverse()).angle().to_degrees();
     let kp_err = |pred: &[P3]| pred.iter().zip(&truth_kp).map(|(a, b)| crate::shape::estep::dist2(a, b).sqrt() * 1e3).collect::<Vec<_>>();
     Some(Trial {
         points: cloud.len(),
@@ -176,6 +181,17 @@ fn trial(registrar: &Registrar, inst: &Instance, truth_surface: &[P3], view: usi
         chamfer: [chamfer_mm(&ours_shape, &truth_world), chamfer_mm(&canon_shape, &truth_world), chamfer_mm(&cpd_shape, &truth_world)],
         fit_ms,
         confident: reg.fit.confident,
+        rotation_error_deg,
+    })
+    .inspect(|t| {
+        if std::env::var_os("GRASPD_EVAL_TRACE").is_some() {
+            let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+            eprintln!(
+                "{} view {view}: {} pts, rot err {:.1}°, scale {:.3} (true {scale:.3}), inliers {:.2}, kp mean ours {:.1} canonical {:.1} cpd {:.1} mm, {:.1} ms",
+                inst.name, t.points, t.rotation_error_deg, reg.scale, reg.fit.inlier_fraction, mean(&t.kp[0]), mean(&t.kp[1]), mean(&t.kp[2]), t.fit_ms
+            );
+            eprintln!("   ours per keypoint {:?}  canonical {:?}", t.kp[0].iter().map(|x| x.round()).collect::<Vec<_>>(), t.kp[1].iter().map(|x| x.round()).collect::<Vec<_>>());
+        }
     })
 }
 

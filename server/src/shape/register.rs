@@ -394,7 +394,7 @@ fn em(
                         }
                     }
                 }
-                let reg = sigma2 / (pose.s * pose.s);
+                let reg = sigma2 / (pose.s * pose.s) * std::env::var("GRASPD_PRIOR").ok().and_then(|v| v.parse::<f64>().ok()).unwrap_or(1.0);
                 for j in 0..q {
                     for k in 0..j {
                         a[(j, k)] = a[(k, j)];
