@@ -50,9 +50,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                 seed,
                 ..Default::default()
             };
-            let mut opts = opts;
-            if std::env::var_os("GRASPD_NOSCALE").is_some() { opts.register.estimate_scale = false; }
-            if let Ok(k) = std::env::var("GRASPD_KEEP") { opts.register.keep = k.parse().unwrap_or(2); }
+
             let mut reports = Vec::new();
             for split in [Split::Test, Split::Train] {
                 let insts: Vec<_> = family.iter().filter(|i| i.split == split).collect();

@@ -62,6 +62,7 @@ pub fn run(a: RegisterArgs) -> CliResult {
         "hypotheses": reg.hypotheses,
         "iterations": reg.iterations,
         "elapsed_ms": reg.elapsed_ms,
+        "stage_ms": reg.stage_ms,
     });
     if a.json {
         print_json(&out)?;

@@ -197,6 +197,9 @@ pub struct SimilarityStep {
     pub translation: Vector3<f64>,
     pub scale: f64,
     pub sigma2: f64,
+    /// tr(AᵀR) and Σ P1‖y − μy‖²: the scale's sufficient statistics (s = trace / yy).
+    pub trace: f64,
+    pub yy: f64,
 }
 
 /// Closed-form weighted Procrustes of the M-step: the similarity minimising
@@ -234,7 +237,7 @@ pub fn weighted_similarity(x: &[P3], y: &[P3], post: &Posteriors, with_scale: bo
     let s = if with_scale && yy > 0.0 { (tr / yy).max(1e-6) } else { 1.0 };
     let t = mu_x - s * (r * mu_y);
     let sigma2 = if with_scale { (xx - s * tr) / (3.0 * np) } else { (xx - 2.0 * tr + yy) / (3.0 * np) };
-    SimilarityStep { rotation: r, translation: t, scale: s, sigma2: sigma2.abs() }
+    SimilarityStep { rotation: r, translation: t, scale: s, sigma2: sigma2.abs(), trace: tr, yy }
 }
 
 // ------------------------------------------------------------ non-rigid

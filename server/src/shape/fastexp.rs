@@ -12,7 +12,8 @@ const ROUND_MAGIC: f64 = 6755399441055744.0;
 /// e^x for x ≤ 0 (x below −700 returns ≈ 0; positive x is not supported).
 #[inline(always)]
 pub fn exp_neg(x: f64) -> f64 {
-    let t = x.max(-700.0) * LOG2E;
+    // A plain select, not f64::max (whose NaN rules block vectorisation).
+    let t = (if x < -700.0 { -700.0 } else { x }) * LOG2E;
     let r = t + ROUND_MAGIC;
     let n = r - ROUND_MAGIC;
     let f = (t - n) * std::f64::consts::LN_2; // |f| ≤ ln2/2

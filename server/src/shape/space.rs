@@ -80,7 +80,7 @@ impl Default for BuildOptions {
             centres: 400,
             instance_points: 1600,
             surface_points: 3000,
-            explained: 0.97,
+            explained: 0.995,
             max_modes: 8,
             prealign: false,
             cpd: NonRigidOptions { beta: 1.0, lambda: 3.0, max_rank: 200, em: EmOptions { w: 0.0, max_iters: 100, tol: 1e-5 }, ..Default::default() },
