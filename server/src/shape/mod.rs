@@ -12,3 +12,6 @@ pub mod space;
 
 pub use register::{Registrar, RegisterOptions, Registration};
 pub use space::{BuildOptions, ShapeSpace};
+
+#[cfg(test)]
+mod tests;
