@@ -32,10 +32,52 @@ pub enum EvalCommand {
         #[arg(long)]
         json: bool,
     },
+    /// Real scanned YCB tools (from ../shared/data/ycb) registered to their categories.
+    Ycb {
+        /// Categories to evaluate (default: all three).
+        #[arg(long)]
+        category: Option<String>,
+        #[arg(long, default_value_t = 8)]
+        views: usize,
+        /// The shared data folder (default: ../shared/data beside the repository).
+        #[arg(long)]
+        data: Option<std::path::PathBuf>,
+        #[arg(long, default_value_t = 7)]
+        seed: u64,
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 pub fn run(cmd: EvalCommand) -> CliResult {
     match cmd {
+        EvalCommand::Ycb { category, views, data, seed, json } => {
+            let data = data.unwrap_or_else(|| super::assets_dir().join("../../shared/data"));
+            let cats: Vec<Category> = match category {
+                Some(c) => vec![c.parse()?],
+                None => Category::ALL.to_vec(),
+            };
+            let mut reports = Vec::new();
+            for c in cats {
+                let path = graspd::eval::ycb::ycb_mesh_path(&data, c);
+                if !path.exists() {
+                    eprintln!("skipping {}: {} is absent", c.name(), path.display());
+                    continue;
+                }
+                let registrar = Registrar::new(builtin::load_or_build(c, &spaces_dir(), |_, _| {})?);
+                reports.push(graspd::eval::ycb::evaluate(&registrar, c, &path, views, seed)?);
+            }
+            if json {
+                print_json(&reports)?;
+            } else {
+                for r in &reports {
+                    println!(
+                        "{}: chamfer median {:.1} mm (p90 {:.1}), inliers median {:.2}, confident {:.0}%, scale median {:.2}, fit p50 {:.1} ms",
+                        r.category, r.chamfer_mm.median, r.chamfer_mm.p90, r.inlier_fraction.median, r.confident_fraction * 100.0, r.scale.median, r.fit_ms.median
+                    );
+                }
+            }
+        }
         EvalCommand::Transfer { category, views, noise_mm, outliers, scale_jitter, on_side, seed, json } => {
             let category: Category = category.parse()?;
             let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;

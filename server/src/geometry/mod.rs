@@ -9,3 +9,6 @@ pub mod sample;
 pub use camera::{DepthCamera, DepthNoise, Intrinsics, PartialView, Scene};
 pub use mesh::{Topology, TriMesh};
 pub use sample::{sample_points, sample_points_even, SurfacePoint, SurfaceSampler};
+
+#[cfg(test)]
+mod camera_mug_tests;
