@@ -66,6 +66,8 @@ pub struct RegisterOptions {
     pub coarse_iters: usize,
     pub fine_points: usize,
     pub fine_iters: usize,
+    /// EM stops when the relative change of the negative log-likelihood falls below this.
+    pub tol: f64,
     /// Hypotheses kept from the coarse stage for the race at full resolution.
     pub keep: usize,
     /// Iterations of each hypothesis in that race, and the observed points it uses.
@@ -89,6 +91,7 @@ impl Default for RegisterOptions {
             coarse_iters: 15,
             fine_points: 400,
             fine_iters: 40,
+            tol: 1e-7,
             keep: 4,
             race_iters: 10,
             race_points: 200,
@@ -480,7 +483,7 @@ fn em(
             num += post.p1[i] * (y[0] * y[0] + y[1] * y[1] + y[2] * y[2]) - 2.0 * (px[0] * y[0] + px[1] * y[1] + px[2] * y[2]);
         }
         sigma2 = (num / (3.0 * post.np)).abs().max(1e-10);
-        if (prev - nll).abs() <= 1e-7 * nll.abs().max(1e-12) {
+        if (prev - nll).abs() <= opts.tol * nll.abs().max(1e-12) {
             break;
         }
         prev = nll;
