@@ -176,6 +176,27 @@ pub mod waiting {
     pub const POLL: u32 = 1;
 }
 
+/// Plain wire data: `#[repr(C)]`, only integers, floats and arrays of them,
+/// no padding, so every byte pattern of the right length is a valid value.
+///
+/// # Safety
+/// Implement only for types with exactly those properties.
+pub unsafe trait Plain: Copy + Sized {
+    /// The value's bytes, as they lie in shared memory.
+    fn as_bytes(&self) -> &[u8] {
+        // SAFETY: Plain types have no padding; every byte is initialised.
+        unsafe { core::slice::from_raw_parts(self as *const Self as *const u8, core::mem::size_of::<Self>()) }
+    }
+    /// A value from exactly `size_of::<Self>()` bytes (any alignment); None for another length.
+    fn from_bytes(bytes: &[u8]) -> Option<Self> {
+        if bytes.len() != core::mem::size_of::<Self>() {
+            return None;
+        }
+        // SAFETY: any byte pattern is a valid Plain value; read_unaligned copes with alignment.
+        Some(unsafe { core::ptr::read_unaligned(bytes.as_ptr() as *const Self) })
+    }
+}
+
 macro_rules! zeroed {
     ($($t:ty),*) => {$(
         impl $t {
@@ -186,8 +207,19 @@ macro_rules! zeroed {
                 unsafe { core::mem::zeroed() }
             }
         }
+        impl Default for $t {
+            fn default() -> Self {
+                Self::zeroed()
+            }
+        }
+        // SAFETY: repr(C), integers/floats/arrays only, no padding (sizes pinned in the tests).
+        unsafe impl Plain for $t {}
     )*};
 }
+
+// SAFETY: as above.
+unsafe impl Plain for Point {}
+unsafe impl Plain for NoPayload {}
 
 /// The request user header of every method (iceoryx2 "user header"), 136 bytes.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
@@ -234,6 +266,15 @@ pub struct RequestHeader {
 #[type_name("graspd.v1.Point")]
 #[repr(C)]
 pub struct Point(pub [f32; 3]);
+
+impl Point {
+    /// Views plain `[f32; 3]` points as wire points (same layout, no copy).
+    pub fn from_arrays(points: &[[f32; 3]]) -> &[Point] {
+        // SAFETY: Point is repr(C) with a single [f32; 3] field: same size,
+        // alignment and validity as [f32; 3].
+        unsafe { core::slice::from_raw_parts(points.as_ptr() as *const Point, points.len()) }
+    }
+}
 
 /// The request payload of methods without one (Health, ListCategories, Stats).
 #[derive(Clone, Copy, Debug, Default, ZeroCopySend)]
@@ -444,8 +485,8 @@ pub struct StatsResponse {
     pub uptime_ns: u64,
     /// Resident set size of the daemon, bytes.
     pub rss_bytes: u64,
-    /// Distinct clients (iceoryx2 client ports) seen since start.
-    pub clients_seen: u64,
+    /// Clients connected now (client ports on the Health service; the Rust SDK opens one per client).
+    pub clients_connected: u64,
     /// Requests waiting for a worker.
     pub queued: u32,
     pub method_count: u32,

@@ -8,5 +8,6 @@ pub mod grasp;
 pub mod geometry;
 pub mod hand;
 pub mod io;
+pub mod service;
 pub mod shape;
 pub mod tools;

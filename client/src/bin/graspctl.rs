@@ -1,1 +1,434 @@
-fn main() {}
+//! `graspctl`: the graspd daemon from the command line (health, categories,
+//! stats, register, grasp, bench). Every command takes --json.
+
+use clap::{Parser, Subcommand, ValueEnum};
+use graspd_client::cloudfile::{read_cloud, synthetic_mug_view};
+use graspd_client::protocol::{self as proto, Plain, Point, RequestHeader, ResponseHeader};
+use graspd_client::{Client, ClientOptions, CloudOptions, Error, StatusCode, WaitMode};
+use std::io::{Read, Write};
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+#[derive(Parser)]
+#[command(name = "graspctl", version, about = "Client of the graspd daemon")]
+struct Cli {
+    /// The daemon's service prefix.
+    #[arg(long, global = true, default_value = proto::DEFAULT_PREFIX)]
+    prefix: String,
+    /// How to wait for responses.
+    #[arg(long, global = true, value_enum, default_value_t = Wait::Auto)]
+    wait: Wait,
+    /// Wait this long for a daemon to appear, milliseconds.
+    #[arg(long, global = true, default_value_t = 0)]
+    connect_timeout_ms: u64,
+    /// Deadline of each request, milliseconds.
+    #[arg(long, global = true, default_value_t = 10_000)]
+    timeout_ms: u64,
+    /// Machine-readable output.
+    #[arg(long, global = true)]
+    json: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum Wait {
+    /// Spin when the daemon polls, sleep on events otherwise.
+    Auto,
+    Spin,
+    Event,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Is the daemon serving? (version, mode, limits, uptime)
+    Health,
+    /// The categories the daemon serves, their keypoints and canonical frames.
+    Categories,
+    /// Per-method counts, statuses and latency percentiles.
+    Stats,
+    /// Registers a cloud: latent shape, pose, fit, keypoints (cloud frame).
+    Register(CloudArgs),
+    /// Registration, grasp and pre-grasp in one round trip.
+    Grasp(CloudArgs),
+    /// Round-trip latency of Register over shared memory, and over a Unix socket as a baseline.
+    Bench(BenchArgs),
+}
+
+#[derive(clap::Args)]
+struct CloudArgs {
+    #[arg(long)]
+    category: String,
+    /// Segmented partial cloud of one tool (.xyz/.csv, .npy, .ply), metres.
+    #[arg(long)]
+    cloud: PathBuf,
+    /// Name of the cloud's frame (echoed in the result).
+    #[arg(long, default_value = "world")]
+    frame: String,
+    /// World up in the cloud's frame, "x,y,z", or "none" when unknown.
+    #[arg(long, default_value = "0,0,1")]
+    up: String,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+}
+
+#[derive(clap::Args)]
+struct BenchArgs {
+    /// Points per request (a synthetic mug-sized partial view unless --cloud).
+    #[arg(long, default_value_t = 20_000)]
+    points: usize,
+    /// Measured requests per transport.
+    #[arg(long, default_value_t = 200)]
+    requests: usize,
+    /// Unmeasured requests first.
+    #[arg(long, default_value_t = 20)]
+    warmup: usize,
+    #[arg(long, default_value = "mug")]
+    category: String,
+    /// Use this cloud (resampled to --points) instead of the synthetic one.
+    #[arg(long)]
+    cloud: Option<PathBuf>,
+    /// The daemon's `uds_baseline` socket: measure the same requests over it too.
+    #[arg(long)]
+    uds: Option<PathBuf>,
+}
+
+fn parse_up(s: &str) -> Result<Option<[f32; 3]>, String> {
+    if s.eq_ignore_ascii_case("none") {
+        return Ok(None);
+    }
+    let v: Vec<f32> = s.split(',').map(|x| x.trim().parse::<f32>()).collect::<Result<_, _>>().map_err(|e| format!("--up {s:?}: {e}"))?;
+    match v.as_slice() {
+        [x, y, z] => Ok(Some([*x, *y, *z])),
+        _ => Err(format!("--up {s:?}: expected x,y,z or none")),
+    }
+}
+
+fn print(json: bool, v: &serde_json::Value, human: impl FnOnce()) {
+    if json {
+        println!("{}", serde_json::to_string_pretty(v).unwrap_or_default());
+    } else {
+        human();
+    }
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match run(&cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            if cli.json {
+                let (code, value) = match &e {
+                    Failure::Status(s) => (s.code.name(), s.code as u32),
+                    Failure::Other(_) => ("CLIENT_ERROR", u32::MAX),
+                };
+                println!("{}", serde_json::json!({"error": {"code": code, "code_value": value, "message": e.message()}}));
+            } else {
+                eprintln!("error: {}", e.message_with_code());
+            }
+            ExitCode::from(1)
+        }
+    }
+}
+
+enum Failure {
+    Status(Error),
+    Other(String),
+}
+
+impl Failure {
+    fn message(&self) -> String {
+        match self {
+            Failure::Status(e) => e.message.clone(),
+            Failure::Other(m) => m.clone(),
+        }
+    }
+    fn message_with_code(&self) -> String {
+        match self {
+            Failure::Status(e) => e.to_string(),
+            Failure::Other(m) => m.clone(),
+        }
+    }
+}
+
+impl From<Error> for Failure {
+    fn from(e: Error) -> Self {
+        Failure::Status(e)
+    }
+}
+impl From<String> for Failure {
+    fn from(e: String) -> Self {
+        Failure::Other(e)
+    }
+}
+impl From<&str> for Failure {
+    fn from(e: &str) -> Self {
+        Failure::Other(e.to_owned())
+    }
+}
+
+fn run(cli: &Cli) -> Result<(), Failure> {
+    let opts = ClientOptions {
+        prefix: cli.prefix.clone(),
+        wait: match cli.wait {
+            Wait::Auto => WaitMode::Auto,
+            Wait::Spin => WaitMode::Spin,
+            Wait::Event => WaitMode::Event,
+        },
+        connect_timeout: Duration::from_millis(cli.connect_timeout_ms),
+        default_timeout: Duration::from_millis(cli.timeout_ms),
+        ..ClientOptions::default()
+    };
+    let timeout = Duration::from_millis(cli.timeout_ms);
+    match &cli.command {
+        Command::Health => {
+            let mut c = Client::connect(opts)?;
+            let h = c.health()?;
+            print(cli.json, &serde_json::json!(h), || {
+                println!(
+                    "{} (pid {}, graspd {}, protocol {}, {} waiting, {} workers), up {:.1} s, started in {:.0} ms, {} categories, max {} points, grasp {}",
+                    if h.serving { "SERVING" } else { "DRAINING" },
+                    h.pid, h.server_version, h.protocol_version, h.waiting, h.workers, h.uptime_s, h.startup_ms, h.categories, h.max_points,
+                    if h.grasp_available { "available" } else { "not available" }
+                )
+            });
+        }
+        Command::Categories => {
+            let mut c = Client::connect(opts)?;
+            let cats = c.categories()?;
+            print(cli.json, &serde_json::json!({"categories": cats}), || {
+                for k in &cats {
+                    println!("{}: latent {}, keypoints {}", k.name, k.latent_dim, k.keypoints.join(", "));
+                }
+            });
+        }
+        Command::Stats => {
+            let mut c = Client::connect(opts)?;
+            let s = c.stats()?;
+            let v = stats_json(&s);
+            print(cli.json, &v, || {
+                println!("up {:.1} s, RSS {:.1} MiB, {} clients, {} queued", s.uptime_ns as f64 * 1e-9, s.rss_bytes as f64 / 1048576.0, s.clients_connected, s.queued);
+                for m in &s.methods[..s.method_count as usize] {
+                    println!(
+                        "  {:<16} {:>8} requests, {:>6} errors, p50 {:>9.1} µs, p99 {:>9.1} µs, max {:>9.1} µs",
+                        proto::text_lossy(&m.name), m.requests, m.requests - m.by_status[0], m.latency_p50_us, m.latency_p99_us, m.latency_max_us
+                    );
+                }
+            });
+        }
+        Command::Register(a) | Command::Grasp(a) => {
+            let cloud = read_cloud(&a.cloud).map_err(|e| e.to_string())?;
+            let co = CloudOptions { cloud_frame: a.frame.clone(), up: parse_up(&a.up)?, seed: a.seed, ..CloudOptions::default() };
+            let mut c = Client::connect(opts)?;
+            let is_grasp = matches!(cli.command, Command::Grasp(_));
+            let mut v = if is_grasp {
+                serde_json::json!(c.grasp_with(&a.category, &cloud, &co, timeout)?)
+            } else {
+                serde_json::json!(c.register_with(&a.category, &cloud, &co, timeout)?)
+            };
+            let t = c.last_call();
+            v["timing_us"] = serde_json::json!({"rtt": t.rtt_ns as f64 * 1e-3, "server": t.server_ns as f64 * 1e-3, "compute": t.compute_ns as f64 * 1e-3});
+            print(cli.json, &v, || {
+                let r = if is_grasp { &v["registration"] } else { &v };
+                println!(
+                    "{}: scale {:.3}, inliers {:.1}%, residual {:.2} mm, {} (round trip {:.1} ms)",
+                    a.category,
+                    r["scale"].as_f64().unwrap_or(f64::NAN),
+                    100.0 * r["fit"]["inlier_fraction"].as_f64().unwrap_or(f64::NAN),
+                    1e3 * r["fit"]["residual_m"].as_f64().unwrap_or(f64::NAN),
+                    if r["fit"]["confident"].as_bool() == Some(true) { "confident" } else { "POOR FIT" },
+                    t.rtt_ns as f64 * 1e-6
+                );
+                for k in r["keypoints"].as_array().into_iter().flatten() {
+                    println!("  {:<16} {}", k["name"].as_str().unwrap_or(""), k["position"]);
+                }
+            });
+        }
+        Command::Bench(b) => bench(cli, b, opts)?,
+    }
+    Ok(())
+}
+
+fn stats_json(s: &proto::StatsResponse) -> serde_json::Value {
+    let methods: Vec<serde_json::Value> = s.methods[..(s.method_count as usize).min(proto::MAX_METHODS)]
+        .iter()
+        .map(|m| {
+            let by_status: serde_json::Map<String, serde_json::Value> = StatusCode::ALL
+                .iter()
+                .filter(|c| m.by_status[**c as usize] > 0)
+                .map(|c| (c.name().to_owned(), serde_json::json!(m.by_status[*c as usize])))
+                .collect();
+            serde_json::json!({
+                "method": proto::text_lossy(&m.name),
+                "requests": m.requests,
+                "errors": m.requests - m.by_status[0],
+                "by_status": by_status,
+                "slow": m.slow,
+                "in_flight": m.in_flight,
+                "latency_us": {"p50": m.latency_p50_us, "p90": m.latency_p90_us, "p99": m.latency_p99_us, "max": m.latency_max_us, "window": m.window},
+                "compute_us": {"p50": m.compute_p50_us, "p99": m.compute_p99_us},
+            })
+        })
+        .collect();
+    serde_json::json!({
+        "uptime_s": s.uptime_ns as f64 * 1e-9,
+        "rss_bytes": s.rss_bytes,
+        "clients_connected": s.clients_connected,
+        "queued": s.queued,
+        "methods": methods,
+    })
+}
+
+/// Nearest-rank percentile of unsorted values, microseconds from nanoseconds.
+fn pct_us(v: &[u64], q: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let mut s = v.to_vec();
+    s.sort_unstable();
+    let rank = ((q * s.len() as f64).ceil() as usize).clamp(1, s.len());
+    s[rank - 1] as f64 * 1e-3
+}
+
+#[derive(Default)]
+struct Samples {
+    rtt: Vec<u64>,
+    rtt_excl_fill: Vec<u64>,
+    server: Vec<u64>,
+    compute: Vec<u64>,
+    overhead: Vec<u64>,
+    overhead_excl_fill: Vec<u64>,
+}
+
+impl Samples {
+    fn push(&mut self, rtt: u64, fill: u64, server: u64, compute: u64) {
+        self.rtt.push(rtt + fill);
+        self.rtt_excl_fill.push(rtt);
+        self.server.push(server);
+        self.compute.push(compute);
+        self.overhead.push((rtt + fill).saturating_sub(compute));
+        self.overhead_excl_fill.push(rtt.saturating_sub(compute));
+    }
+}
+
+fn bench(cli: &Cli, b: &BenchArgs, opts: ClientOptions) -> Result<(), Failure> {
+    if b.points == 0 || b.requests == 0 {
+        return Err("--points and --requests must be positive".to_string().into());
+    }
+    let cloud: Vec<[f32; 3]> = match &b.cloud {
+        Some(p) => {
+            let c = read_cloud(p).map_err(|e| e.to_string())?;
+            if c.is_empty() {
+                return Err(format!("{}: empty cloud", p.display()).into());
+            }
+            (0..b.points).map(|i| c[i * c.len() / b.points]).collect()
+        }
+        None => synthetic_mug_view(b.points),
+    };
+    let mut c = Client::connect(ClientOptions { initial_max_points: b.points, ..opts })?;
+    let health = c.health()?;
+    let timeout = Duration::from_millis(cli.timeout_ms);
+    let co = CloudOptions::default();
+    for _ in 0..b.warmup {
+        c.register_with(&b.category, &cloud, &co, timeout)?;
+    }
+    let mut shm = Samples::default();
+    for _ in 0..b.requests {
+        c.register_with(&b.category, &cloud, &co, timeout)?;
+        let t = c.last_call();
+        shm.push(t.rtt_ns, t.fill_ns, t.server_ns, t.compute_ns);
+    }
+    let baseline = match &b.uds {
+        Some(path) => Some(bench_uds(path, b, &cloud)?),
+        None => None,
+    };
+    let client_wait = match (c.options().wait, health.waiting) {
+        (WaitMode::Spin, _) | (WaitMode::Auto, "poll") => "spin",
+        _ => "event",
+    };
+    let summary = |s: &Samples| {
+        serde_json::json!({
+            "rtt_us": {"p50": pct_us(&s.rtt, 0.5), "p99": pct_us(&s.rtt, 0.99), "max": pct_us(&s.rtt, 1.0)},
+            "server_us": {"p50": pct_us(&s.compute, 0.5), "total_p50": pct_us(&s.server, 0.5)},
+            "transport_overhead_us": {"p50": pct_us(&s.overhead, 0.5), "p99": pct_us(&s.overhead, 0.99)},
+        })
+    };
+    let mut v = summary(&shm);
+    v["rtt_excl_fill_us"] = serde_json::json!({"p50": pct_us(&shm.rtt_excl_fill, 0.5), "p99": pct_us(&shm.rtt_excl_fill, 0.99), "max": pct_us(&shm.rtt_excl_fill, 1.0)});
+    v["transport_overhead_excl_fill_us"] = serde_json::json!({"p50": pct_us(&shm.overhead_excl_fill, 0.5), "p99": pct_us(&shm.overhead_excl_fill, 0.99)});
+    v["points"] = serde_json::json!(b.points);
+    v["requests"] = serde_json::json!(b.requests);
+    v["category"] = serde_json::json!(b.category);
+    v["daemon_waiting"] = serde_json::json!(health.waiting);
+    v["client_wait"] = serde_json::json!(client_wait);
+    v["baseline_uds"] = match &baseline {
+        Some(s) => summary(s),
+        None => serde_json::Value::Null,
+    };
+    if let Some(s) = &baseline {
+        v["overhead_ratio_uds_over_shm"] = serde_json::json!({
+            "p50": pct_us(&s.overhead, 0.5) / pct_us(&shm.overhead, 0.5),
+            "p50_excl_fill": pct_us(&s.overhead, 0.5) / pct_us(&shm.overhead_excl_fill, 0.5),
+        });
+    }
+    v["definitions"] = serde_json::json!({
+        "rtt_us": "client call: cloud written into shared memory (uds: serialised into a buffer), sent, response in hand",
+        "rtt_excl_fill_us": "shared memory only: from send to response (the client produced the cloud in shared memory)",
+        "server_us": "p50: engine time in the daemon (ResponseHeader::compute_ns); total_p50: receipt to answer (server_ns)",
+        "transport_overhead_us": "per request rtt minus engine time, then percentiles",
+    });
+    print(cli.json, &v, || {
+        println!(
+            "{} points, {} requests, daemon {} / client {}: rtt p50 {:.1} µs p99 {:.1} µs, engine p50 {:.1} µs, overhead p50 {:.1} µs p99 {:.1} µs (excluding the cloud copy: p50 {:.1} µs)",
+            b.points, b.requests, health.waiting, client_wait,
+            pct_us(&shm.rtt, 0.5), pct_us(&shm.rtt, 0.99), pct_us(&shm.compute, 0.5),
+            pct_us(&shm.overhead, 0.5), pct_us(&shm.overhead, 0.99), pct_us(&shm.overhead_excl_fill, 0.5)
+        );
+        if let Some(s) = &baseline {
+            println!(
+                "UDS baseline: rtt p50 {:.1} µs, overhead p50 {:.1} µs p99 {:.1} µs ({:.1}× the shared-memory overhead)",
+                pct_us(&s.rtt, 0.5), pct_us(&s.overhead, 0.5), pct_us(&s.overhead, 0.99), pct_us(&s.overhead, 0.5) / pct_us(&shm.overhead, 0.5)
+            );
+        }
+    });
+    Ok(())
+}
+
+/// The same Register requests over the daemon's Unix-socket baseline endpoint:
+/// header and points serialised into a buffer, written, response read back.
+fn bench_uds(path: &std::path::Path, b: &BenchArgs, cloud: &[[f32; 3]]) -> Result<Samples, Failure> {
+    let mut s = std::os::unix::net::UnixStream::connect(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let mut out = Samples::default();
+    let mut buf: Vec<u8> = Vec::new();
+    let mut resp = vec![0u8; std::mem::size_of::<ResponseHeader>() + std::mem::size_of::<proto::RegisterResponse>()];
+    for i in 0..(b.warmup + b.requests) {
+        let t0 = Instant::now();
+        let mut h = RequestHeader::zeroed();
+        h.request_id = i as u64 + 1;
+        h.protocol_version = proto::PROTOCOL_VERSION;
+        h.category = proto::str_to_text(&b.category);
+        h.cloud_frame = proto::str_to_text("world");
+        h.up_in_cloud = [0.0, 0.0, 1.0];
+        buf.clear();
+        buf.extend_from_slice(h.as_bytes());
+        buf.extend_from_slice(&(cloud.len() as u32).to_le_bytes());
+        for p in Point::from_arrays(cloud) {
+            for v in p.0 {
+                buf.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        s.write_all(&buf).map_err(|e| format!("uds write: {e}"))?;
+        s.read_exact(&mut resp).map_err(|e| format!("uds read: {e}"))?;
+        let hdr = ResponseHeader::from_bytes(&resp[..std::mem::size_of::<ResponseHeader>()]).ok_or("uds: short response")?;
+        let _body = proto::RegisterResponse::from_bytes(&resp[std::mem::size_of::<ResponseHeader>()..]).ok_or("uds: short response")?;
+        let rtt = t0.elapsed().as_nanos() as u64;
+        if hdr.status != 0 {
+            return Err(Error::new(StatusCode::from_u32(hdr.status), proto::text_lossy(&hdr.message)).into());
+        }
+        if i >= b.warmup {
+            out.push(rtt, 0, hdr.server_ns, hdr.compute_ns);
+        }
+    }
+    Ok(out)
+}

@@ -5,6 +5,7 @@ mod cloud;
 mod cpd;
 mod eval;
 mod register;
+mod serve;
 mod space;
 
 use clap::{Parser, Subcommand};
@@ -35,6 +36,8 @@ enum Command {
     /// Evaluations that print the figures of the issues.
     #[command(subcommand)]
     Eval(eval::EvalCommand),
+    /// Runs the daemon: serves the engine to local clients over shared memory (iceoryx2).
+    Serve(serve::ServeArgs),
 }
 
 pub fn run(cli: Cli) -> CliResult {
@@ -45,6 +48,7 @@ pub fn run(cli: Cli) -> CliResult {
         Command::Space(c) => space::run(c),
         Command::Register(a) => register::run(a),
         Command::Eval(c) => eval::run(c),
+        Command::Serve(a) => serve::run(a, std::time::Instant::now()),
     }
 }
 

@@ -1,0 +1,171 @@
+//! The daemon's configuration (TOML). deploy/graspd.toml documents every option.
+
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// How the dispatcher waits for requests.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Waiting {
+    /// Sleep until a client notifies the method's event service (default).
+    Event,
+    /// Spin on the request queues: lowest latency, one core busy.
+    Poll,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Config {
+    /// Services are `<service_prefix>/v1/<method>`.
+    pub service_prefix: String,
+    /// Categories to load at start (built-in families: mug, drill, hammer).
+    pub categories: Vec<String>,
+    /// Shape-space cache; a missing or stale artefact is built at start and saved here.
+    /// Default: the repository's assets/spaces.
+    pub cache_dir: Option<PathBuf>,
+    /// Largest cloud accepted (points); larger requests get RESOURCE_EXHAUSTED.
+    pub max_points: u32,
+    /// Client ports per service (iceoryx2 service limit).
+    pub max_clients: u32,
+    /// Requests one client may have in flight; more get RESOURCE_EXHAUSTED.
+    pub max_in_flight_per_client: u32,
+    /// Engine worker threads; 0 = one per available core.
+    pub workers: u32,
+    pub waiting: Waiting,
+    /// How long an idle worker looks for the next request before it sleeps, microseconds.
+    pub worker_spin_us: u64,
+    /// Requests slower than this (receipt to answer) are logged and counted, milliseconds.
+    pub slow_request_ms: f64,
+    /// Period of housekeeping (dead-peer cleanup, idle reply notifiers), milliseconds.
+    pub housekeeping_ms: u64,
+    /// On SIGINT/SIGTERM, how long in-flight requests may take to finish, seconds.
+    pub shutdown_grace_s: f64,
+    /// Log a metrics line (per-method counts and latencies) every this many seconds; 0 = never.
+    pub metrics_interval_s: f64,
+    /// A Unix-domain socket serving Register with a serialised copy of the cloud: the
+    /// baseline `graspctl bench` compares with. Off when absent.
+    pub uds_baseline: Option<PathBuf>,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            service_prefix: graspd_proto::DEFAULT_PREFIX.to_owned(),
+            categories: vec!["mug".into(), "drill".into(), "hammer".into()],
+            cache_dir: None,
+            max_points: 200_000,
+            max_clients: 64,
+            max_in_flight_per_client: 4,
+            workers: 0,
+            waiting: Waiting::Event,
+            worker_spin_us: 200,
+            slow_request_ms: 250.0,
+            housekeeping_ms: 500,
+            shutdown_grace_s: 30.0,
+            metrics_interval_s: 0.0,
+            uds_baseline: None,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("{path}: {source}")]
+    Read { path: PathBuf, source: std::io::Error },
+    #[error("{path}: {message}")]
+    Parse { path: PathBuf, message: String },
+    #[error("configuration: {0}")]
+    Invalid(String),
+}
+
+impl Config {
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.into(), source })?;
+        let cfg: Config = toml::from_str(&text).map_err(|e| ConfigError::Parse { path: path.into(), message: e.to_string() })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |m: String| Err(ConfigError::Invalid(m));
+        let p = &self.service_prefix;
+        if p.is_empty() || p.len() > 64 || !p.chars().all(|c| c.is_ascii_alphanumeric() || "_-.".contains(c)) {
+            return bad(format!("service_prefix {p:?}: 1 to 64 characters of [A-Za-z0-9_.-]"));
+        }
+        if self.categories.is_empty() {
+            return bad("categories: at least one".into());
+        }
+        if self.categories.len() > graspd_proto::MAX_CATEGORIES {
+            return bad(format!("categories: at most {}", graspd_proto::MAX_CATEGORIES));
+        }
+        for (i, c) in self.categories.iter().enumerate() {
+            c.parse::<crate::tools::Category>().map_err(|e| ConfigError::Invalid(format!("categories: {e}")))?;
+            if self.categories[..i].contains(c) {
+                return bad(format!("categories: {c:?} twice"));
+            }
+        }
+        if self.max_points == 0 || self.max_points > 10_000_000 {
+            return bad(format!("max_points {}: 1 to 10000000", self.max_points));
+        }
+        if self.max_clients == 0 || self.max_clients > 4096 {
+            return bad(format!("max_clients {}: 1 to 4096", self.max_clients));
+        }
+        if self.max_in_flight_per_client == 0 || self.max_in_flight_per_client > 256 {
+            return bad(format!("max_in_flight_per_client {}: 1 to 256", self.max_in_flight_per_client));
+        }
+        if self.workers > 256 {
+            return bad(format!("workers {}: at most 256", self.workers));
+        }
+        for (name, v) in [("slow_request_ms", self.slow_request_ms), ("shutdown_grace_s", self.shutdown_grace_s), ("metrics_interval_s", self.metrics_interval_s)] {
+            if !v.is_finite() || v < 0.0 {
+                return bad(format!("{name} {v}: a finite number ≥ 0"));
+            }
+        }
+        if self.housekeeping_ms == 0 || self.housekeeping_ms > 60_000 {
+            return bad(format!("housekeeping_ms {}: 1 to 60000", self.housekeeping_ms));
+        }
+        if self.worker_spin_us > 1_000_000 {
+            return bad(format!("worker_spin_us {}: at most 1000000", self.worker_spin_us));
+        }
+        Ok(())
+    }
+
+    /// Worker threads to start.
+    pub fn worker_count(&self) -> usize {
+        match self.workers {
+            0 => std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+            n => n as usize,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_example_configuration_parses_and_equals_the_defaults() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/graspd.toml");
+        let cfg = Config::load(&path).unwrap();
+        let d = Config::default();
+        assert_eq!(toml::to_string(&cfg).unwrap(), toml::to_string(&d).unwrap());
+    }
+
+    #[test]
+    fn bad_configurations_are_clear_errors() {
+        for (text, needle) in [
+            ("max_points = 0", "max_points"),
+            ("categories = [\"spoon\"]", "categories"),
+            ("waiting = \"sometimes\"", "waiting"),
+            ("unknown_option = 1", "unknown_option"),
+            ("service_prefix = \"a/b\"", "service_prefix"),
+            ("slow_request_ms = -1.0", "slow_request_ms"),
+        ] {
+            let dir = tempfile::tempdir().unwrap();
+            let p = dir.path().join("c.toml");
+            std::fs::write(&p, text).unwrap();
+            let e = Config::load(&p).unwrap_err().to_string();
+            assert!(e.contains(needle), "{text}: {e}");
+        }
+    }
+}

@@ -1,0 +1,882 @@
+//! The daemon: iceoryx2 services, the dispatcher loop and the engine workers.
+//!
+//! One dispatcher thread owns the server ports. It receives every request,
+//! validates its header (cheap, bounded work), answers Health,
+//! ListCategories, Stats and every invalid request at once, and hands valid
+//! Register/Grasp requests to a bounded queue. Worker threads take a request
+//! from the queue, read its cloud straight from shared memory, run the
+//! engine and send the response themselves (the daemon uses iceoryx2's
+//! thread-safe service variant, so a request may move to a worker). A slow or
+//! huge request therefore occupies one worker, never the dispatcher, and one
+//! client holds at most `max_in_flight_per_client` requests.
+
+use super::config::{Config, Waiting};
+use super::engine::{Engine, Status, GRASP_AVAILABLE};
+use super::stats::{rss_bytes, stats_json, Stats};
+use graspd_proto::{self as proto, Method, NoPayload, Point, RequestHeader, ResponseHeader, StatusCode};
+use iceoryx2::active_request::ActiveRequest;
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::server::Server;
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::{event as event_factory, request_response as rr_factory};
+use iceoryx2::waitset::WaitSetRunResult;
+use std::collections::{HashMap, VecDeque};
+use std::fmt::Debug;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+/// iceoryx2's thread-safe IPC variant: requests can move to worker threads.
+pub type Ipc = ipc_threadsafe::Service;
+
+type ReqOf<P, R> = ActiveRequest<Ipc, P, RequestHeader, R, ResponseHeader>;
+type CloudReq<R> = ReqOf<[Point], R>;
+type ServerOf<P, R> = Server<Ipc, P, RequestHeader, R, ResponseHeader>;
+type RrFactory<P, R> = rr_factory::PortFactory<Ipc, P, RequestHeader, R, ResponseHeader>;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error(transparent)]
+    Config(#[from] super::config::ConfigError),
+    #[error(transparent)]
+    Engine(#[from] super::engine::EngineError),
+    #[error("iceoryx2: {0}")]
+    Ipc(String),
+}
+
+macro_rules! ipc {
+    ($e:expr, $what:expr) => {
+        $e.map_err(|e| ServeError::Ipc(format!("{}: {:?}", $what, e)))
+    };
+}
+
+/// What a finished `serve` reports.
+#[derive(Debug, serde::Serialize)]
+pub struct ServeReport {
+    pub startup_ms: f64,
+    pub uptime_s: f64,
+    pub requests: u64,
+    /// Requests still unanswered when the shutdown grace ran out.
+    pub abandoned: usize,
+}
+
+pub fn now_unix_ns() -> u64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0)
+}
+
+/// A job for a worker: a validated Register or Grasp request.
+enum Job {
+    Register { req: CloudReq<proto::RegisterResponse>, meta: JobMeta },
+    Grasp { req: CloudReq<proto::GraspResponse>, meta: JobMeta },
+}
+
+struct JobMeta {
+    header: RequestHeader,
+    category: usize,
+    client: u128,
+    received: Instant,
+}
+
+/// A client's reply notifier: being opened, open, or not openable (retried later).
+enum Reply {
+    Opening { notify_when_open: bool },
+    /// The service handle keeps the client's event service open while we notify it.
+    Open(#[allow(dead_code)] event_factory::PortFactory<Ipc>, Notifier<Ipc>),
+    Failed,
+}
+
+/// Reply notifiers, one per client token. Opening a client's event service
+/// takes milliseconds, so a background thread does it (the caller never
+/// waits) and delivers the notification that asked for it.
+struct Notifiers {
+    /// token → state, last use.
+    entries: HashMap<u64, (Reply, Instant)>,
+    capacity: usize,
+    opener: std::sync::mpsc::Sender<u64>,
+}
+
+impl Notifiers {
+    fn notify(&mut self, token: u64) {
+        let now = Instant::now();
+        let reopen = match self.entries.get_mut(&token) {
+            Some((Reply::Open(_, n), t)) => {
+                *t = now;
+                match n.notify() {
+                    Ok(listeners) if listeners > 0 => return,
+                    // The client's listener is gone: forget it (a new one is opened on demand).
+                    _ => {
+                        self.entries.remove(&token);
+                        return;
+                    }
+                }
+            }
+            Some((Reply::Opening { notify_when_open }, _)) => {
+                *notify_when_open = true;
+                return;
+            }
+            Some((Reply::Failed, t)) => now.duration_since(*t) > Duration::from_secs(1),
+            None => true,
+        };
+        if reopen {
+            if self.entries.len() >= self.capacity {
+                if let Some(oldest) = self.entries.iter().min_by_key(|(_, (_, t))| *t).map(|(k, _)| *k) {
+                    self.entries.remove(&oldest);
+                }
+            }
+            self.entries.insert(token, (Reply::Opening { notify_when_open: true }, now));
+            let _ = self.opener.send(token);
+        }
+    }
+
+    fn opened(&mut self, token: u64, result: Option<(event_factory::PortFactory<Ipc>, Notifier<Ipc>)>) {
+        let now = Instant::now();
+        let wanted = matches!(self.entries.get(&token), Some((Reply::Opening { notify_when_open: true }, _)));
+        match result {
+            Some((svc, n)) => {
+                if wanted {
+                    let _ = n.notify();
+                }
+                self.entries.insert(token, (Reply::Open(svc, n), now));
+            }
+            None => {
+                tracing::debug!("no reply event service for token {token:016x}");
+                self.entries.insert(token, (Reply::Failed, now));
+            }
+        }
+    }
+
+    fn evict_idle(&mut self, idle: Duration) {
+        let now = Instant::now();
+        self.entries.retain(|_, (r, t)| matches!(r, Reply::Opening { .. }) || now.duration_since(*t) < idle);
+    }
+}
+
+/// The thread that opens reply notifiers (see [`Notifiers`]).
+fn reply_opener(node: Node<Ipc>, prefix: String, rx: std::sync::mpsc::Receiver<u64>, shared: std::sync::Weak<Shared>) {
+    loop {
+        let token = match rx.recv_timeout(Duration::from_millis(200)) {
+            Ok(t) => t,
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => match shared.upgrade() {
+                Some(s) if !s.stop_workers.load(Ordering::Acquire) => continue,
+                _ => return,
+            },
+            Err(_) => return,
+        };
+        let opened = proto::reply_service_name(&prefix, token)
+            .as_str()
+            .try_into()
+            .ok()
+            .and_then(|name: ServiceName| node.service_builder(&name).event().open().ok())
+            .and_then(|svc| svc.notifier_builder().create().ok().map(|n| (svc, n)));
+        match shared.upgrade() {
+            Some(s) => lock(&s.notifiers).opened(token, opened),
+            None => return,
+        }
+    }
+}
+
+/// State shared by the dispatcher and the workers.
+struct Shared {
+    config: Config,
+    engine: Engine,
+    stats: Mutex<Stats>,
+    in_flight: Mutex<HashMap<u128, u32>>,
+    notifiers: Mutex<Notifiers>,
+    queue: Mutex<VecDeque<Job>>,
+    queue_cv: Condvar,
+    queue_capacity: usize,
+    stop_workers: AtomicBool,
+    draining: AtomicBool,
+    slow_ns: u64,
+    started: Instant,
+}
+
+/// Locks a mutex; a poisoned one (a panic while held, which the workers'
+/// catch_unwind makes unlikely) is used as is: counters stay usable.
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl Shared {
+    fn response_header(&self, h: &RequestHeader, status: &Status, received: Instant, compute_ns: u64) -> ResponseHeader {
+        let mut r = ResponseHeader::zeroed();
+        r.request_id = h.request_id;
+        r.status = status.code as u32;
+        r.protocol_version = proto::PROTOCOL_VERSION;
+        r.message = proto::str_to_text(&status.message);
+        r.compute_ns = compute_ns;
+        r.server_ns = received.elapsed().as_nanos() as u64;
+        r
+    }
+
+    /// Sends a response (body zero unless OK), notifies the client, records it.
+    fn answer<P: Debug + IceoryxSend + ?Sized, R: Debug + ZeroCopySend + Copy + Default>(
+        &self,
+        method: Method,
+        req: &ReqOf<P, R>,
+        status: Status,
+        body: Option<&R>,
+        received: Instant,
+        compute_ns: u64,
+    ) {
+        let h = *req.user_header();
+        let hdr = self.response_header(&h, &status, received, compute_ns);
+        let sent = req.loan_uninit().map_err(|e| format!("{e:?}")).and_then(|mut r| {
+            *r.user_header_mut() = hdr;
+            let r = r.write_payload(body.copied().unwrap_or_default());
+            r.send().map_err(|e| format!("{e:?}"))
+        });
+        if let Err(e) = sent {
+            // The client is gone or its buffer is full: nothing more can be done for it.
+            tracing::debug!("{}: could not send the response to request {}: {e}", method.name(), h.request_id);
+        }
+        if h.notify_token != 0 {
+            lock(&self.notifiers).notify(h.notify_token);
+        }
+        let server_ns = received.elapsed().as_nanos() as u64;
+        let slow = lock(&self.stats).record(method, status.code, server_ns, compute_ns, self.slow_ns);
+        if slow {
+            tracing::warn!(
+                method = method.name(),
+                request_id = h.request_id,
+                status = status.code.name(),
+                server_ms = server_ns as f64 * 1e-6,
+                compute_ms = compute_ns as f64 * 1e-6,
+                "slow request"
+            );
+        }
+    }
+
+    fn release(&self, method: Method, client: u128) {
+        let mut f = lock(&self.in_flight);
+        if let Some(n) = f.get_mut(&client) {
+            *n -= 1;
+            if *n == 0 {
+                f.remove(&client);
+            }
+        }
+        drop(f);
+        let mut s = lock(&self.stats);
+        let m = &mut s.methods[method as usize];
+        m.in_flight = m.in_flight.saturating_sub(1);
+    }
+
+    fn deadline_passed(h: &RequestHeader) -> bool {
+        h.deadline_unix_ns != 0 && now_unix_ns() > h.deadline_unix_ns
+    }
+
+    /// Header checks common to every method.
+    fn check_header(&self, h: &RequestHeader) -> Result<(), Status> {
+        if h.protocol_version != proto::PROTOCOL_VERSION {
+            return Err(Status::invalid(format!("protocol_version {}; this daemon speaks {}", h.protocol_version, proto::PROTOCOL_VERSION)));
+        }
+        if h.flags != 0 {
+            return Err(Status::invalid(format!("flags {:#x}: no flags are defined (must be 0)", h.flags)));
+        }
+        if Self::deadline_passed(h) {
+            return Err(Status::new(StatusCode::DeadlineExceeded, "deadline passed before the request was read"));
+        }
+        if self.draining.load(Ordering::Relaxed) {
+            return Err(Status::new(StatusCode::Unavailable, "the daemon is shutting down"));
+        }
+        Ok(())
+    }
+
+    /// Checks of a cloud request; returns the category index.
+    fn check_cloud(&self, method: Method, h: &RequestHeader, points: usize) -> Result<usize, Status> {
+        let name = proto::name_to_str(&h.category).map_err(|e| Status::invalid(format!("category: {e}")))?;
+        proto::name_to_str(&h.cloud_frame).map_err(|e| Status::invalid(format!("cloud_frame: {e}")))?;
+        let category = self
+            .engine
+            .find(name)
+            .ok_or_else(|| Status::new(StatusCode::NotFound, format!("category {name:?} is not served (served: {})", self.engine.names().join(", "))))?;
+        if points == 0 {
+            return Err(Status::invalid("empty cloud"));
+        }
+        if points > self.config.max_points as usize {
+            return Err(Status::new(StatusCode::ResourceExhausted, format!("{points} points; this daemon accepts at most {}", self.config.max_points)));
+        }
+        let [x, y, z] = h.up_in_cloud;
+        if !(x.is_finite() && y.is_finite() && z.is_finite()) {
+            return Err(Status::invalid("up_in_cloud is not finite"));
+        }
+        if method == Method::Grasp {
+            if h.table_mode > proto::table_mode::GIVEN {
+                return Err(Status::invalid(format!("table_mode {}: 0 AUTO, 1 NONE, 2 GIVEN", h.table_mode)));
+            }
+            if !h.table_z_m.is_finite() {
+                return Err(Status::invalid("table_z_m is not finite"));
+            }
+            if !(h.pregrasp_backoff_m.is_finite() && (0.0..=0.5).contains(&h.pregrasp_backoff_m)) {
+                return Err(Status::invalid(format!("pregrasp_backoff_m {}: 0 (default) to 0.5 m", h.pregrasp_backoff_m)));
+            }
+            if !(h.pregrasp_joint_fraction.is_finite() && (0.0..=1.0).contains(&h.pregrasp_joint_fraction)) {
+                return Err(Status::invalid(format!("pregrasp_joint_fraction {}: 0 (default) to 1", h.pregrasp_joint_fraction)));
+            }
+            if !GRASP_AVAILABLE {
+                return Err(Status::new(StatusCode::FailedPrecondition, super::engine::GRASP_UNAVAILABLE_MESSAGE));
+            }
+        }
+        Ok(category)
+    }
+
+    /// Reserves an in-flight slot for the client.
+    fn admit(&self, method: Method, client: u128) -> Result<(), Status> {
+        let mut f = lock(&self.in_flight);
+        let n = f.entry(client).or_insert(0);
+        if *n >= self.config.max_in_flight_per_client {
+            let limit = self.config.max_in_flight_per_client;
+            if *n == 0 {
+                f.remove(&client);
+            }
+            return Err(Status::new(StatusCode::ResourceExhausted, format!("more than {limit} requests in flight from this client")));
+        }
+        *n += 1;
+        drop(f);
+        lock(&self.stats).methods[method as usize].in_flight += 1;
+        Ok(())
+    }
+
+    fn health(&self, startup_ns: u64) -> proto::HealthResponse {
+        let mut r = proto::HealthResponse::zeroed();
+        r.uptime_ns = self.started.elapsed().as_nanos() as u64;
+        r.startup_ns = startup_ns;
+        r.pid = std::process::id();
+        r.protocol_version = proto::PROTOCOL_VERSION;
+        r.serving = if self.draining.load(Ordering::Relaxed) { proto::serving::DRAINING } else { proto::serving::SERVING };
+        r.waiting = match self.config.waiting {
+            Waiting::Event => proto::waiting::EVENT,
+            Waiting::Poll => proto::waiting::POLL,
+        };
+        r.categories = self.engine.categories.len() as u32;
+        r.max_points = self.config.max_points;
+        r.max_in_flight_per_client = self.config.max_in_flight_per_client;
+        r.workers = self.config.worker_count() as u32;
+        r.grasp_available = GRASP_AVAILABLE as u32;
+        r.server_version = proto::str_to_text(env!("CARGO_PKG_VERSION"));
+        r
+    }
+
+    fn categories(&self) -> proto::CategoriesResponse {
+        let mut r = proto::CategoriesResponse::zeroed();
+        r.count = self.engine.categories.len() as u32;
+        for (slot, c) in r.categories.iter_mut().zip(&self.engine.categories) {
+            *slot = c.info;
+        }
+        r
+    }
+
+    fn stats(&self, clients: u64) -> proto::StatsResponse {
+        let queued = lock(&self.queue).len() as u32;
+        lock(&self.stats).to_wire(self.started.elapsed().as_nanos() as u64, rss_bytes(), clients, queued)
+    }
+
+    fn in_flight_total(&self) -> usize {
+        lock(&self.in_flight).values().map(|n| *n as usize).sum()
+    }
+
+    /// Runs one job on a worker: deadline, engine (panics contained), answer.
+    fn run_job(&self, job: Job) {
+        match job {
+            Job::Register { req, meta } => {
+                self.run_cloud(Method::Register, &req, &meta, |pts, h| self.engine.register(meta.category, pts, h));
+                self.release(Method::Register, meta.client);
+            }
+            Job::Grasp { req, meta } => {
+                self.run_cloud(Method::Grasp, &req, &meta, |pts, h| self.engine.grasp(meta.category, pts, h));
+                self.release(Method::Grasp, meta.client);
+            }
+        }
+    }
+
+    fn run_cloud<R: Debug + ZeroCopySend + Copy + Default>(
+        &self,
+        method: Method,
+        req: &CloudReq<R>,
+        meta: &JobMeta,
+        work: impl FnOnce(&[Point], &RequestHeader) -> Result<R, Status>,
+    ) {
+        if !req.is_connected() {
+            tracing::debug!("{}: client gone before request {} was worked on", method.name(), meta.header.request_id);
+            return;
+        }
+        if Self::deadline_passed(&meta.header) {
+            let s = Status::new(StatusCode::DeadlineExceeded, "deadline passed while the request waited for a worker");
+            return self.answer(method, req, s, None, meta.received, 0);
+        }
+        let t0 = Instant::now();
+        // The cloud is read in place from shared memory (the engine converts it once).
+        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| work(req.payload(), &meta.header)));
+        let compute_ns = t0.elapsed().as_nanos() as u64;
+        let (status, body) = match result {
+            Ok(Ok(_)) if Self::deadline_passed(&meta.header) => {
+                (Status::new(StatusCode::DeadlineExceeded, "deadline passed during the computation"), None)
+            }
+            Ok(Ok(body)) => (Status::new(StatusCode::Ok, ""), Some(body)),
+            Ok(Err(s)) => (s, None),
+            Err(panic) => {
+                let what = panic.downcast_ref::<&str>().map(|s| s.to_string()).or_else(|| panic.downcast_ref::<String>().cloned()).unwrap_or_default();
+                tracing::error!("{}: request {} panicked in the engine: {what}", method.name(), meta.header.request_id);
+                (Status::new(StatusCode::Internal, format!("internal error: {what}")), None)
+            }
+        };
+        self.answer(method, req, status, body.as_ref(), meta.received, compute_ns);
+    }
+
+    fn worker_loop(&self) {
+        // Spinning a little after each job lets back-to-back requests skip a thread wake-up.
+        let spin = Duration::from_micros(self.config.worker_spin_us);
+        let polite = self.config.waiting == Waiting::Event;
+        loop {
+            let job = {
+                let mut spin_start: Option<Instant> = None;
+                let mut q = lock(&self.queue);
+                loop {
+                    if let Some(j) = q.pop_front() {
+                        break Some(j);
+                    }
+                    if self.stop_workers.load(Ordering::Acquire) {
+                        break None;
+                    }
+                    let t = *spin_start.get_or_insert_with(Instant::now);
+                    if t.elapsed() < spin {
+                        drop(q);
+                        if polite {
+                            std::thread::yield_now();
+                        } else {
+                            std::hint::spin_loop();
+                        }
+                        q = lock(&self.queue);
+                    } else {
+                        q = self.queue_cv.wait_timeout(q, Duration::from_millis(200)).map(|(g, _)| g).unwrap_or_else(|p| p.into_inner().0);
+                    }
+                }
+            };
+            match job {
+                Some(j) => self.run_job(j),
+                None => return,
+            }
+        }
+    }
+
+    fn submit(&self, job: Job) -> Result<(), (Job, Status)> {
+        let mut q = lock(&self.queue);
+        if q.len() >= self.queue_capacity {
+            return Err((job, Status::new(StatusCode::ResourceExhausted, "the daemon's work queue is full")));
+        }
+        q.push_back(job);
+        drop(q);
+        self.queue_cv.notify_one();
+        Ok(())
+    }
+}
+
+/// One method's service: the server port, the paired event listener.
+struct Endpoint<P: Debug + IceoryxSend + ?Sized + 'static, R: Debug + ZeroCopySend + 'static> {
+    _service: RrFactory<P, R>,
+    server: ServerOf<P, R>,
+    _event: event_factory::PortFactory<Ipc>,
+    listener: Listener<Ipc>,
+}
+
+/// The service limits and attributes every request-response service gets.
+struct ServiceSpec {
+    name: String,
+    sname: ServiceName,
+    attrs: AttributeSpecifier,
+    clients: usize,
+    active: usize,
+}
+
+fn service_spec(cfg: &Config, method: Method) -> Result<ServiceSpec, ServeError> {
+    let name = method.service_name(&cfg.service_prefix);
+    let sname: ServiceName = ipc!(name.as_str().try_into(), format!("service name {name}"))?;
+    let waiting = match cfg.waiting {
+        Waiting::Event => "event",
+        Waiting::Poll => "poll",
+    };
+    let key = |k: &str| ipc!(k.try_into(), "attribute key");
+    let value = |v: &str| ipc!(v.try_into(), "attribute value");
+    let (k1, v1) = (key(proto::attribute::PROTOCOL_VERSION)?, value(&proto::PROTOCOL_VERSION.to_string())?);
+    let (k2, v2) = (key(proto::attribute::WAITING)?, value(waiting)?);
+    let attrs = ipc!(AttributeSpecifier::new().define(&k1, &v1).and_then(|a| a.define(&k2, &v2)), "attributes")?;
+    Ok(ServiceSpec { name, sname, attrs, clients: cfg.max_clients as usize, active: cfg.max_in_flight_per_client as usize + 4 })
+}
+
+/// Creates a request-response service with the daemon's limits (a macro: iceoryx2
+/// implements `create` separately for fixed and slice payloads).
+macro_rules! create_rr {
+    ($node:expr, $spec:expr, $req:ty, $resp:ty) => {{
+        let spec: &ServiceSpec = $spec;
+        $node
+            .service_builder(&spec.sname)
+            .request_response::<$req, $resp>()
+            .request_user_header::<RequestHeader>()
+            .response_user_header::<ResponseHeader>()
+            .max_servers(1)
+            .max_clients(spec.clients)
+            .max_nodes(spec.clients + 2)
+            .max_active_requests_per_client(spec.active)
+            .max_loaned_requests(2)
+            .create_with_attributes(&spec.attrs)
+            .map_err(|e| {
+                ServeError::Ipc(format!(
+                    "cannot create {}: {e:?} (another graspd serving this prefix? Stale services of a crashed daemon are removed at start when permissions allow)",
+                    spec.name
+                ))
+            })
+    }};
+}
+
+fn endpoint<P: Debug + IceoryxSend + ?Sized + 'static, R: Debug + ZeroCopySend + 'static>(
+    node: &Node<Ipc>,
+    cfg: &Config,
+    method: Method,
+    service: RrFactory<P, R>,
+) -> Result<Endpoint<P, R>, ServeError> {
+    let name = method.service_name(&cfg.service_prefix);
+    let server = ipc!(service.server_builder().create(), format!("server port of {name}"))?;
+    let ename = method.notify_service_name(&cfg.service_prefix);
+    let esname: ServiceName = ipc!(ename.as_str().try_into(), format!("service name {ename}"))?;
+    let clients = cfg.max_clients as usize;
+    let event = ipc!(
+        node.service_builder(&esname).event().max_notifiers(clients + 4).max_listeners(2).max_nodes(clients + 4).create(),
+        format!("cannot create {ename}")
+    )?;
+    let listener = ipc!(event.listener_builder().create(), format!("listener of {ename}"))?;
+    Ok(Endpoint { _service: service, server, _event: event, listener })
+}
+
+/// All five methods' endpoints.
+struct Endpoints {
+    health: Endpoint<NoPayload, proto::HealthResponse>,
+    categories: Endpoint<NoPayload, proto::CategoriesResponse>,
+    register: Endpoint<[Point], proto::RegisterResponse>,
+    grasp: Endpoint<[Point], proto::GraspResponse>,
+    stats: Endpoint<NoPayload, proto::StatsResponse>,
+}
+
+impl Endpoints {
+    fn listeners(&self) -> [&Listener<Ipc>; 5] {
+        [&self.health.listener, &self.categories.listener, &self.register.listener, &self.grasp.listener, &self.stats.listener]
+    }
+
+    fn clients_connected(&self) -> u64 {
+        self._health_service().dynamic_config().number_of_clients() as u64
+    }
+
+    fn _health_service(&self) -> &RrFactory<NoPayload, proto::HealthResponse> {
+        &self.health._service
+    }
+}
+
+/// Drains every server; returns how many requests were handled.
+fn dispatch(shared: &Shared, ep: &Endpoints, startup_ns: u64) -> usize {
+    let mut handled = 0;
+    // Plain methods: answered here.
+    while let Ok(Some(req)) = ep.health.server.receive() {
+        handled += 1;
+        let t = Instant::now();
+        let body = shared.health(startup_ns);
+        // Health is answered even while draining (it reports DRAINING).
+        let h = *req.user_header();
+        let status = match shared.check_header(&h) {
+            Err(s) if s.code != StatusCode::Unavailable => s,
+            _ => Status::new(StatusCode::Ok, ""),
+        };
+        let ok = status.code == StatusCode::Ok;
+        shared.answer(Method::Health, &req, status, ok.then_some(&body), t, 0);
+    }
+    while let Ok(Some(req)) = ep.categories.server.receive() {
+        handled += 1;
+        let t = Instant::now();
+        match shared.check_header(req.user_header()) {
+            Ok(()) => shared.answer(Method::ListCategories, &req, Status::new(StatusCode::Ok, ""), Some(&shared.categories()), t, 0),
+            Err(s) => shared.answer(Method::ListCategories, &req, s, None, t, 0),
+        }
+    }
+    while let Ok(Some(req)) = ep.stats.server.receive() {
+        handled += 1;
+        let t = Instant::now();
+        match shared.check_header(req.user_header()) {
+            Ok(()) => {
+                let body = shared.stats(ep.clients_connected());
+                shared.answer(Method::Stats, &req, Status::new(StatusCode::Ok, ""), Some(&body), t, 0)
+            }
+            Err(s) => shared.answer(Method::Stats, &req, s, None, t, 0),
+        }
+    }
+    // Cloud methods: validated here, worked on by the workers.
+    while let Ok(Some(req)) = ep.register.server.receive() {
+        handled += 1;
+        let t = Instant::now();
+        let h = *req.user_header();
+        let client = req.origin().value();
+        let checked = shared.check_header(&h).and_then(|_| shared.check_cloud(Method::Register, &h, req.payload().len())).and_then(|c| shared.admit(Method::Register, client).map(|_| c));
+        match checked {
+            Err(s) => shared.answer(Method::Register, &req, s, None, t, 0),
+            Ok(category) => {
+                let meta = JobMeta { header: h, category, client, received: t };
+                if let Err((job, s)) = shared.submit(Job::Register { req, meta }) {
+                    if let Job::Register { req, meta } = job {
+                        shared.answer(Method::Register, &req, s, None, t, 0);
+                        shared.release(Method::Register, meta.client);
+                    }
+                }
+            }
+        }
+    }
+    while let Ok(Some(req)) = ep.grasp.server.receive() {
+        handled += 1;
+        let t = Instant::now();
+        let h = *req.user_header();
+        let client = req.origin().value();
+        let checked = shared.check_header(&h).and_then(|_| shared.check_cloud(Method::Grasp, &h, req.payload().len())).and_then(|c| shared.admit(Method::Grasp, client).map(|_| c));
+        match checked {
+            Err(s) => shared.answer(Method::Grasp, &req, s, None, t, 0),
+            Ok(category) => {
+                let meta = JobMeta { header: h, category, client, received: t };
+                if let Err((job, s)) = shared.submit(Job::Grasp { req, meta }) {
+                    if let Job::Grasp { req, meta } = job {
+                        shared.answer(Method::Grasp, &req, s, None, t, 0);
+                        shared.release(Method::Grasp, meta.client);
+                    }
+                }
+            }
+        }
+    }
+    handled
+}
+
+/// Options given on the command line on top of the configuration.
+#[derive(Clone, Debug, Default)]
+pub struct ServeOptions {
+    /// When the process started (for the startup time); default: now.
+    pub process_start: Option<Instant>,
+    /// Called once when serving starts, with the startup report.
+    pub ready_line: bool,
+}
+
+fn default_cache_dir() -> PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/spaces")
+}
+
+/// Runs the daemon until SIGINT/SIGTERM; returns after in-flight requests finished.
+pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeError> {
+    config.validate()?;
+    let process_start = opts.process_start.unwrap_or_else(Instant::now);
+    let prefix = config.service_prefix.clone();
+
+    let node_name: NodeName = ipc!("graspd".try_into(), "node name")?;
+    let node = ipc!(
+        NodeBuilder::new().name(&node_name).signal_handling_mode(SignalHandlingMode::HandleTerminationRequests).create::<Ipc>(),
+        "cannot create the iceoryx2 node"
+    )?;
+    // Registers the SIGINT/SIGTERM handlers now (a signal during loading is honoured after it).
+    let _ = termination_requested();
+    let cleaned = node.try_cleanup_dead_nodes();
+    tracing::info!(cleanups = cleaned.cleanups, failed = cleaned.failed_cleanups, "removed the stale resources of dead iceoryx2 peers");
+
+    let cache_dir = config.cache_dir.clone().unwrap_or_else(default_cache_dir);
+    let (engine, times) = Engine::load(&config.categories, &cache_dir)?;
+    for (name, ms) in &times {
+        tracing::info!("loaded {name} in {ms:.1} ms");
+    }
+
+    let spec = |m| service_spec(&config, m);
+    let ep = Endpoints {
+        health: endpoint(&node, &config, Method::Health, create_rr!(node, &spec(Method::Health)?, NoPayload, proto::HealthResponse)?)?,
+        categories: endpoint(&node, &config, Method::ListCategories, create_rr!(node, &spec(Method::ListCategories)?, NoPayload, proto::CategoriesResponse)?)?,
+        register: endpoint(&node, &config, Method::Register, create_rr!(node, &spec(Method::Register)?, [Point], proto::RegisterResponse)?)?,
+        grasp: endpoint(&node, &config, Method::Grasp, create_rr!(node, &spec(Method::Grasp)?, [Point], proto::GraspResponse)?)?,
+        stats: endpoint(&node, &config, Method::Stats, create_rr!(node, &spec(Method::Stats)?, NoPayload, proto::StatsResponse)?)?,
+    };
+
+    let reply_node = ipc!(NodeBuilder::new().name(&node_name).signal_handling_mode(SignalHandlingMode::Disabled).create::<Ipc>(), "reply node")?;
+    let workers = config.worker_count();
+    let (opener_tx, opener_rx) = std::sync::mpsc::channel();
+    let shared = Arc::new(Shared {
+        queue_capacity: (config.max_clients as usize * config.max_in_flight_per_client as usize).max(1),
+        slow_ns: (config.slow_request_ms * 1e6) as u64,
+        notifiers: Mutex::new(Notifiers { entries: HashMap::new(), capacity: 4 * config.max_clients as usize, opener: opener_tx }),
+        engine,
+        config,
+        stats: Mutex::new(Stats::new()),
+        in_flight: Mutex::new(HashMap::new()),
+        queue: Mutex::new(VecDeque::new()),
+        queue_cv: Condvar::new(),
+        stop_workers: AtomicBool::new(false),
+        draining: AtomicBool::new(false),
+        started: Instant::now(),
+    });
+    {
+        let (weak, prefix) = (Arc::downgrade(&shared), prefix.clone());
+        std::thread::Builder::new()
+            .name("graspd-reply".into())
+            .spawn(move || reply_opener(reply_node, prefix, opener_rx, weak))
+            .map_err(|e| ServeError::Ipc(format!("cannot start the reply thread: {e}")))?;
+    }
+    let mut handles = Vec::new();
+    for i in 0..workers {
+        let s = shared.clone();
+        let h = std::thread::Builder::new().name(format!("graspd-worker-{i}")).spawn(move || s.worker_loop()).map_err(|e| ServeError::Ipc(format!("cannot start a worker: {e}")))?;
+        handles.push(h);
+    }
+    let _uds = match &shared.config.uds_baseline {
+        Some(path) => Some(super::uds::start(path, shared_engine_handle(&shared)).map_err(|e| ServeError::Ipc(format!("uds baseline {}: {e}", path.display())))?),
+        None => None,
+    };
+    let startup_ns = process_start.elapsed().as_nanos() as u64;
+    tracing::info!(
+        prefix = %prefix,
+        waiting = ?shared.config.waiting,
+        workers,
+        categories = %shared.engine.names().join(","),
+        startup_ms = startup_ns as f64 * 1e-6,
+        "serving"
+    );
+    if opts.ready_line {
+        // A machine-readable line for supervisors and tests.
+        println!("{}", serde_json::json!({"ready": true, "prefix": prefix, "startup_ms": startup_ns as f64 * 1e-6, "pid": std::process::id()}));
+        use std::io::Write;
+        let _ = std::io::stdout().flush();
+    }
+
+    let result = run_loop(&node, &shared, &ep, startup_ns);
+
+    // Drain: new requests get UNAVAILABLE, accepted ones finish (bounded by the grace period).
+    shared.draining.store(true, Ordering::Relaxed);
+    let grace = Duration::from_secs_f64(shared.config.shutdown_grace_s);
+    let t_drain = Instant::now();
+    tracing::info!(in_flight = shared.in_flight_total(), "shutting down: finishing the requests in flight");
+    loop {
+        dispatch(&shared, &ep, startup_ns);
+        if shared.in_flight_total() == 0 || t_drain.elapsed() > grace {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    // Whatever is still queued after the grace period is answered, not dropped.
+    let leftover: Vec<Job> = lock(&shared.queue).drain(..).collect();
+    for job in leftover {
+        let s = || Status::new(StatusCode::Unavailable, "the daemon shut down before this request was worked on");
+        match job {
+            Job::Register { req, meta } => {
+                shared.answer(Method::Register, &req, s(), None, meta.received, 0);
+                shared.release(Method::Register, meta.client);
+            }
+            Job::Grasp { req, meta } => {
+                shared.answer(Method::Grasp, &req, s(), None, meta.received, 0);
+                shared.release(Method::Grasp, meta.client);
+            }
+        }
+    }
+    let abandoned = shared.in_flight_total();
+    shared.stop_workers.store(true, Ordering::Release);
+    shared.queue_cv.notify_all();
+    if abandoned == 0 {
+        for h in handles {
+            let _ = h.join();
+        }
+    } else {
+        tracing::warn!(abandoned, "shutdown grace period over with requests still running; leaving them");
+    }
+    let requests = lock(&shared.stats).methods.iter().map(|m| m.requests).sum();
+    let report = ServeReport { startup_ms: startup_ns as f64 * 1e-6, uptime_s: shared.started.elapsed().as_secs_f64(), requests, abandoned };
+    tracing::info!(requests, uptime_s = report.uptime_s, "stopped");
+    result.map(|_| report)
+}
+
+fn shared_engine_handle(shared: &Arc<Shared>) -> super::uds::EngineHandle {
+    let s = shared.clone();
+    super::uds::EngineHandle {
+        max_points: shared.config.max_points as usize,
+        register: Box::new(move |pts: &[Point], h: &RequestHeader| {
+            let category = proto::name_to_str(&h.category)
+                .map_err(|e| Status::invalid(format!("category: {e}")))
+                .and_then(|n| s.engine.find(n).ok_or_else(|| Status::new(StatusCode::NotFound, format!("category {n:?} is not served"))))?;
+            s.engine.register(category, pts, h)
+        }),
+    }
+}
+
+/// Whether SIGINT/SIGTERM arrived since the last call (iceoryx2's handler sets
+/// the flag; reading it clears it, so the caller must act on a true).
+fn termination_requested() -> bool {
+    iceoryx2_bb_posix::signal::SignalHandler::termination_requested()
+}
+
+/// The serving loop; returns on SIGINT/SIGTERM.
+fn run_loop(node: &Node<Ipc>, shared: &Shared, ep: &Endpoints, startup_ns: u64) -> Result<(), ServeError> {
+    let housekeeping = Duration::from_millis(shared.config.housekeeping_ms);
+    let metrics = (shared.config.metrics_interval_s > 0.0).then(|| Duration::from_secs_f64(shared.config.metrics_interval_s));
+    let mut last_house = Instant::now();
+    let mut last_metrics = Instant::now();
+    let mut house = |force: bool| {
+        if !force && last_house.elapsed() < housekeeping {
+            return;
+        }
+        last_house = Instant::now();
+        let c = node.try_cleanup_dead_nodes();
+        if c.cleanups > 0 || c.failed_cleanups > 0 {
+            tracing::info!(cleanups = c.cleanups, failed = c.failed_cleanups, "removed the resources of dead peers");
+        }
+        lock(&shared.notifiers).evict_idle(Duration::from_secs(30));
+        if let Some(every) = metrics {
+            if last_metrics.elapsed() >= every {
+                last_metrics = Instant::now();
+                tracing::info!(target: "graspd::metrics", "{}", stats_json(&shared.stats(ep.clients_connected())));
+            }
+        }
+    };
+    match shared.config.waiting {
+        Waiting::Event => {
+            let waitset = ipc!(WaitSetBuilder::new().signal_handling_mode(SignalHandlingMode::HandleTerminationRequests).create::<Ipc>(), "waitset")?;
+            let mut guards = Vec::new();
+            for l in ep.listeners() {
+                guards.push(ipc!(waitset.attach_notification(l), "waitset attach")?);
+            }
+            let _tick = ipc!(waitset.attach_interval(housekeeping), "waitset interval")?;
+            loop {
+                // Requests sent before the first wait, or whose notification raced: drain first.
+                for l in ep.listeners() {
+                    let _ = l.try_wait(|_| {});
+                }
+                dispatch(shared, ep, startup_ns);
+                house(false);
+                // A signal that arrived while we were busy is not seen by the wait below.
+                if termination_requested() {
+                    return Ok(());
+                }
+                match waitset.wait_and_process_once(|_| CallbackProgression::Continue) {
+                    Ok(WaitSetRunResult::TerminationRequest) | Ok(WaitSetRunResult::Interrupt) => return Ok(()),
+                    Ok(_) => {}
+                    Err(e) => {
+                        // A signal can surface as an error of the underlying wait.
+                        if termination_requested() {
+                            return Ok(());
+                        }
+                        return Err(ServeError::Ipc(format!("waitset: {e:?}")));
+                    }
+                }
+            }
+        }
+        Waiting::Poll => {
+            let mut last_signal_check = Instant::now();
+            loop {
+                if dispatch(shared, ep, startup_ns) == 0 {
+                    std::hint::spin_loop();
+                }
+                if last_signal_check.elapsed() >= Duration::from_millis(2) {
+                    last_signal_check = Instant::now();
+                    if termination_requested() {
+                        return Ok(());
+                    }
+                    house(false);
+                }
+            }
+        }
+    }
+}
