@@ -314,7 +314,14 @@ impl Client {
     /// Connects to the daemon serving `opts.prefix`, waiting up to `opts.connect_timeout` for one.
     pub fn connect(opts: ClientOptions) -> Result<Client, Error> {
         iceoryx2::prelude::set_log_level_from_env_or(LogLevel::Error);
+        // No implicit dead-node cleanups: they can block forever on a peer
+        // killed at the wrong moment (graspd_proto::hygiene); the daemon cleans.
+        let mut config = iceoryx2::config::Config::global_config().clone();
+        config.global.node.cleanup_dead_nodes_on_creation = false;
+        config.global.node.cleanup_dead_nodes_on_destruction = false;
+        config.global.service.cleanup_dead_nodes_on_open = false;
         let node = NodeBuilder::new()
+            .config(&config)
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<Ipc>()
             .map_err(|e| Error::new(StatusCode::Unavailable, format!("cannot create an iceoryx2 node: {e:?}")))?;
@@ -379,34 +386,19 @@ impl Client {
                 format!("the daemon speaks protocol {version:?}, this client {}", proto::PROTOCOL_VERSION),
             ));
         }
-        let daemon_polls = attr(proto::attribute::WAITING).as_deref() == Some("poll");
-        let mut daemon = None;
+        // The daemon serving now: the server whose node is alive (a crashed
+        // daemon's server lingers until the next daemon removes its stale resources).
+        let mut servers = Vec::new();
         health_svc.dynamic_config().list_servers(|s| {
-            daemon = Some(s.node_id);
-            CallbackProgression::Stop
+            servers.push(s.node_id);
+            CallbackProgression::Continue
         });
+        let daemon = servers.into_iter().find(|id| matches!(Node::<Ipc>::state_of(node.config(), *id), Ok(Some(NodeState::Alive(_))) | Ok(Some(NodeState::Inaccessible(_)))));
         if daemon.is_none() {
-            return Err(Error::lost(format!("no graspd serves prefix {:?} (services without a server)", o.prefix)));
+            return Err(Error::lost(format!("no graspd serves prefix {:?} (services without a live server)", o.prefix)));
         }
-        let event_wait = match o.wait {
-            WaitMode::Spin => false,
-            WaitMode::Event => true,
-            WaitMode::Auto => !daemon_polls,
-        };
-        let reply = if event_wait {
-            let name = proto::reply_service_name(&o.prefix, self.token);
-            let sname: ServiceName = name.as_str().try_into().map_err(|e| ipc_error("reply service name", e))?;
-            let svc = node.service_builder(&sname).event().max_listeners(1).max_notifiers(2).open_or_create().map_err(|e| ipc_error("reply event service", e))?;
-            let l = svc.listener_builder().create().map_err(|e| ipc_error("reply listener", e))?;
-            Some((svc, l))
-        } else {
-            None
-        };
-        // The daemon's notify event services, only when it sleeps on them.
+        // Notifiers on the daemon's wake-up event services (dropped below if it polls).
         let notify = |m: Method| -> Result<(Option<event_factory::PortFactory<Ipc>>, Option<Notifier<Ipc>>), Error> {
-            if daemon_polls {
-                return Ok((None, None));
-            }
             let name = m.notify_service_name(&o.prefix);
             let sname: ServiceName = name.as_str().try_into().map_err(|e| ipc_error("notify service name", e))?;
             let svc = node.service_builder(&sname).event().open().map_err(|e| Error::lost(format!("{name}: {e:?}")))?;
@@ -442,10 +434,41 @@ impl Client {
             grasp: cloud!(open_rr!(node, o, Method::Grasp, [Point], proto::GraspResponse)?, Method::Grasp),
             stats: plain!(open_rr!(node, o, Method::Stats, NoPayload, proto::StatsResponse)?, Method::Stats),
             daemon,
-            daemon_polls,
-            reply,
+            daemon_polls: false,
+            reply: None,
         };
         self.conn = Some(conn);
+        // Ask the daemon how it waits (spinning on this first answer).
+        let polls = match self.plain_call_once(|c| &c.health) {
+            Ok(h) => h.waiting == proto::waiting::POLL,
+            Err(e) => {
+                self.conn = None;
+                return Err(e);
+            }
+        };
+        let event_wait = match self.opts.wait {
+            WaitMode::Spin => false,
+            WaitMode::Event => true,
+            WaitMode::Auto => !polls,
+        };
+        let reply = if event_wait {
+            let name = proto::reply_service_name(&self.opts.prefix, self.token);
+            let sname: ServiceName = name.as_str().try_into().map_err(|e| ipc_error("reply service name", e))?;
+            let svc = self.node.service_builder(&sname).event().max_listeners(1).max_notifiers(2).open_or_create().map_err(|e| ipc_error("reply event service", e))?;
+            let l = svc.listener_builder().create().map_err(|e| ipc_error("reply listener", e))?;
+            Some((svc, l))
+        } else {
+            None
+        };
+        let conn = self.conn.as_mut().expect("connected");
+        conn.daemon_polls = polls;
+        conn.reply = reply;
+        if polls {
+            // A polling daemon does not listen: skip the notification (a syscall) per call.
+            for n in [&mut conn.health.notifier, &mut conn.categories.notifier, &mut conn.register.notifier, &mut conn.grasp.notifier, &mut conn.stats.notifier] {
+                *n = None;
+            }
+        }
         Ok(())
     }
 
@@ -544,7 +567,6 @@ impl Client {
             match r {
                 Err(e) if e.transport && self.opts.resend_after_restart && Instant::now() + Duration::from_millis(20) < deadline => {
                     self.conn = None;
-                    let _ = self.node.try_cleanup_dead_nodes();
                     std::thread::sleep(Duration::from_millis(20));
                 }
                 Err(e) => {
@@ -556,6 +578,24 @@ impl Client {
                 Ok(v) => return Ok(v),
             }
         }
+    }
+
+/// One request on the current connection, no reconnection (used while connecting).
+    fn plain_call_once<R: Debug + ZeroCopySend + Copy + 'static>(&mut self, select: fn(&Connection) -> &Endpoint<NoPayload, R>) -> Result<R, Error> {
+        let timeout = self.opts.default_timeout;
+        let deadline = Instant::now() + timeout;
+        let h = self.header(unix_ns().saturating_add(timeout.as_nanos() as u64));
+        let conn = self.conn.as_ref().ok_or_else(|| Error::lost("not connected"))?;
+        let ep = select(conn);
+        let mut req = ep.port.loan_uninit().map_err(|e| Error::new(StatusCode::ResourceExhausted, format!("loan: {e:?}")))?;
+        *req.user_header_mut() = h;
+        let pending = req.write_payload(NoPayload::default()).send().map_err(send_error)?;
+        if let Some(n) = &ep.notifier {
+            let _ = n.notify();
+        }
+        let (rh, body) = Self::wait(&self.node, conn, &pending, deadline)?;
+        status(&rh)?;
+        Ok(body)
     }
 
     fn plain_call<R: Debug + ZeroCopySend + Copy + 'static>(&mut self, select: fn(&Connection) -> &Endpoint<NoPayload, R>) -> Result<R, Error> {
@@ -720,10 +760,7 @@ fn daemon_alive(node: &Node<Ipc>, conn: &Connection) -> bool {
     let Some(id) = conn.daemon else { return true };
     match Node::<Ipc>::state_of(node.config(), id) {
         Ok(Some(NodeState::Alive(_))) | Ok(Some(NodeState::Inaccessible(_))) | Err(_) => true,
-        Ok(Some(NodeState::Dead(d))) => {
-            let _ = d.try_remove_stale_resources();
-            false
-        }
+        Ok(Some(NodeState::Dead(_))) => false,
         Ok(Some(NodeState::Undefined(_))) | Ok(None) => false,
     }
 }

@@ -42,9 +42,6 @@ pub const FRAME_TEXT_LEN: usize = 384;
 pub mod attribute {
     /// Value: PROTOCOL_VERSION in decimal.
     pub const PROTOCOL_VERSION: &str = "graspd.protocol_version";
-    /// Value: "event" (clients must notify the paired event service after
-    /// sending) or "poll" (the daemon spins; notifying is harmless but useless).
-    pub const WAITING: &str = "graspd.waiting";
 }
 
 /// The methods the daemon serves. The discriminant is the index of the
@@ -509,6 +506,46 @@ zeroed!(
     StatsResponse
 );
 
+/// Shared-memory hygiene around an iceoryx2 0.10 weakness, used by the daemon
+/// and the SDK.
+///
+/// A process killed between creating an iceoryx2 shared-memory object and
+/// sizing it leaves an empty, write-only object in /dev/shm. Any later
+/// dead-node cleanup that opens it waits for it to be initialised, forever
+/// (`posix_shared_memory::Builder::open_impl` retries `MappingSizeIsZero`
+/// without a timeout). Such an object is abandoned once it is older than a
+/// moment (creation takes microseconds), so removing it is safe, and it
+/// releases any cleanup already stuck on it.
+pub mod hygiene {
+    use std::os::unix::fs::PermissionsExt;
+    use std::time::{Duration, SystemTime};
+
+    /// Removes iceoryx2 objects (`iox2_*`) in /dev/shm that are empty, not
+    /// yet readable (iceoryx2 grants read access once initialised) and older
+    /// than `min_age`. Returns how many were removed; objects of other users
+    /// that this user may not remove are skipped.
+    pub fn purge_abandoned_shm(min_age: Duration) -> usize {
+        let Ok(dir) = std::fs::read_dir("/dev/shm") else { return 0 };
+        let now = SystemTime::now();
+        let mut removed = 0;
+        for entry in dir.flatten() {
+            let name = entry.file_name();
+            if !name.to_string_lossy().starts_with("iox2_") {
+                continue;
+            }
+            let Ok(meta) = entry.metadata() else { continue };
+            let abandoned = meta.is_file()
+                && meta.len() == 0
+                && meta.permissions().mode() & 0o444 == 0
+                && meta.modified().ok().and_then(|m| now.duration_since(m).ok()).is_some_and(|age| age >= min_age);
+            if abandoned && std::fs::remove_file(entry.path()).is_ok() {
+                removed += 1;
+            }
+        }
+        removed
+    }
+}
+
 /// Errors of [`name_to_str`] / [`str_to_name`].
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum NameError {
@@ -618,6 +655,35 @@ mod tests {
         assert_eq!(name_to_str(&bad), Err(NameError::NotUtf8));
         let t: [u8; 5] = str_to_text("héllo");
         assert_eq!(text_lossy(&t), "héll");
+    }
+
+    #[test]
+    fn abandoned_empty_write_only_iceoryx2_objects_are_purged() {
+        use std::os::unix::fs::PermissionsExt;
+        use std::time::{Duration, SystemTime};
+        let dir = std::path::Path::new("/dev/shm");
+        if !dir.is_dir() {
+            return;
+        }
+        let make = |name: &str, mode: u32, len: u64, age_s: u64| {
+            let p = dir.join(name);
+            let f = std::fs::File::create(&p).unwrap();
+            f.set_len(len).unwrap();
+            f.set_modified(SystemTime::now() - Duration::from_secs(age_s)).unwrap();
+            std::fs::set_permissions(&p, std::fs::Permissions::from_mode(mode)).unwrap();
+            p
+        };
+        let pid = std::process::id();
+        let abandoned = make(&format!("iox2_graspd_test_{pid}_abandoned"), 0o200, 0, 60);
+        let young = make(&format!("iox2_graspd_test_{pid}_young"), 0o200, 0, 0);
+        let live = make(&format!("iox2_graspd_test_{pid}_live"), 0o600, 0, 60);
+        let sized = make(&format!("iox2_graspd_test_{pid}_sized"), 0o200, 64, 60);
+        hygiene::purge_abandoned_shm(Duration::from_secs(1));
+        assert!(!abandoned.exists());
+        for p in [young, live, sized] {
+            assert!(p.exists(), "{}", p.display());
+            std::fs::remove_file(p).unwrap();
+        }
     }
 
     #[test]

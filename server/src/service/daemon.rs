@@ -223,6 +223,8 @@ impl Shared {
     ) {
         let h = *req.user_header();
         let hdr = self.response_header(&h, &status, received, compute_ns);
+        // Counted before the client can see the answer (a Stats call right after it includes it).
+        let slow = lock(&self.stats).record(method, status.code, hdr.server_ns, compute_ns, self.slow_ns);
         let sent = req.loan_uninit().map_err(|e| format!("{e:?}")).and_then(|mut r| {
             *r.user_header_mut() = hdr;
             let r = r.write_payload(body.copied().unwrap_or_default());
@@ -235,14 +237,12 @@ impl Shared {
         if h.notify_token != 0 {
             lock(&self.notifiers).notify(h.notify_token);
         }
-        let server_ns = received.elapsed().as_nanos() as u64;
-        let slow = lock(&self.stats).record(method, status.code, server_ns, compute_ns, self.slow_ns);
         if slow {
             tracing::warn!(
                 method = method.name(),
                 request_id = h.request_id,
                 status = status.code.name(),
-                server_ms = server_ns as f64 * 1e-6,
+                server_ms = hdr.server_ns as f64 * 1e-6,
                 compute_ms = compute_ns as f64 * 1e-6,
                 "slow request"
             );
@@ -381,48 +381,56 @@ impl Shared {
     fn run_job(&self, job: Job) {
         match job {
             Job::Register { req, meta } => {
-                self.run_cloud(Method::Register, &req, &meta, |pts, h| self.engine.register(meta.category, pts, h));
-                self.release(Method::Register, meta.client);
+                let out = self.run_cloud(Method::Register, &req, &meta, |pts, h| self.engine.register(meta.category, pts, h));
+                self.finish(Method::Register, &req, &meta, out);
             }
             Job::Grasp { req, meta } => {
-                self.run_cloud(Method::Grasp, &req, &meta, |pts, h| self.engine.grasp(meta.category, pts, h));
-                self.release(Method::Grasp, meta.client);
+                let out = self.run_cloud(Method::Grasp, &req, &meta, |pts, h| self.engine.grasp(meta.category, pts, h));
+                self.finish(Method::Grasp, &req, &meta, out);
             }
         }
     }
 
+    /// Frees the client's in-flight slot, then answers: a client that sends its
+    /// next request as soon as it has the answer must find the slot free.
+    fn finish<R: Debug + ZeroCopySend + Copy + Default>(&self, method: Method, req: &CloudReq<R>, meta: &JobMeta, out: Option<(Status, Option<R>, u64)>) {
+        self.release(method, meta.client);
+        if let Some((status, body, compute_ns)) = out {
+            self.answer(method, req, status, body.as_ref(), meta.received, compute_ns);
+        }
+    }
+
+    /// The work of a cloud request: (status, body, engine ns), or None when the client is gone.
     fn run_cloud<R: Debug + ZeroCopySend + Copy + Default>(
         &self,
         method: Method,
         req: &CloudReq<R>,
         meta: &JobMeta,
         work: impl FnOnce(&[Point], &RequestHeader) -> Result<R, Status>,
-    ) {
+    ) -> Option<(Status, Option<R>, u64)> {
         if !req.is_connected() {
             tracing::debug!("{}: client gone before request {} was worked on", method.name(), meta.header.request_id);
-            return;
+            return None;
         }
         if Self::deadline_passed(&meta.header) {
-            let s = Status::new(StatusCode::DeadlineExceeded, "deadline passed while the request waited for a worker");
-            return self.answer(method, req, s, None, meta.received, 0);
+            return Some((Status::new(StatusCode::DeadlineExceeded, "deadline passed while the request waited for a worker"), None, 0));
         }
         let t0 = Instant::now();
         // The cloud is read in place from shared memory (the engine converts it once).
         let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| work(req.payload(), &meta.header)));
         let compute_ns = t0.elapsed().as_nanos() as u64;
-        let (status, body) = match result {
+        Some(match result {
             Ok(Ok(_)) if Self::deadline_passed(&meta.header) => {
-                (Status::new(StatusCode::DeadlineExceeded, "deadline passed during the computation"), None)
+                (Status::new(StatusCode::DeadlineExceeded, "deadline passed during the computation"), None, compute_ns)
             }
-            Ok(Ok(body)) => (Status::new(StatusCode::Ok, ""), Some(body)),
-            Ok(Err(s)) => (s, None),
+            Ok(Ok(body)) => (Status::new(StatusCode::Ok, ""), Some(body), compute_ns),
+            Ok(Err(s)) => (s, None, compute_ns),
             Err(panic) => {
                 let what = panic.downcast_ref::<&str>().map(|s| s.to_string()).or_else(|| panic.downcast_ref::<String>().cloned()).unwrap_or_default();
                 tracing::error!("{}: request {} panicked in the engine: {what}", method.name(), meta.header.request_id);
-                (Status::new(StatusCode::Internal, format!("internal error: {what}")), None)
+                (Status::new(StatusCode::Internal, format!("internal error: {what}")), None, compute_ns)
             }
-        };
-        self.answer(method, req, status, body.as_ref(), meta.received, compute_ns);
+        })
     }
 
     fn worker_loop(&self) {
@@ -485,7 +493,7 @@ struct Endpoint<P: Debug + IceoryxSend + ?Sized + 'static, R: Debug + ZeroCopySe
 struct ServiceSpec {
     name: String,
     sname: ServiceName,
-    attrs: AttributeSpecifier,
+    attrs: AttributeVerifier,
     clients: usize,
     active: usize,
 }
@@ -493,20 +501,17 @@ struct ServiceSpec {
 fn service_spec(cfg: &Config, method: Method) -> Result<ServiceSpec, ServeError> {
     let name = method.service_name(&cfg.service_prefix);
     let sname: ServiceName = ipc!(name.as_str().try_into(), format!("service name {name}"))?;
-    let waiting = match cfg.waiting {
-        Waiting::Event => "event",
-        Waiting::Poll => "poll",
-    };
-    let key = |k: &str| ipc!(k.try_into(), "attribute key");
-    let value = |v: &str| ipc!(v.try_into(), "attribute value");
-    let (k1, v1) = (key(proto::attribute::PROTOCOL_VERSION)?, value(&proto::PROTOCOL_VERSION.to_string())?);
-    let (k2, v2) = (key(proto::attribute::WAITING)?, value(waiting)?);
-    let attrs = ipc!(AttributeSpecifier::new().define(&k1, &v1).and_then(|a| a.define(&k2, &v2)), "attributes")?;
+    let key: iceoryx2::service::attribute::AttributeKey = ipc!(proto::attribute::PROTOCOL_VERSION.try_into(), "attribute key")?;
+    let value: iceoryx2::service::attribute::AttributeValue = ipc!(proto::PROTOCOL_VERSION.to_string().as_str().try_into(), "attribute value")?;
+    let attrs = ipc!(AttributeVerifier::new().require(&key, &value), "attributes")?;
     Ok(ServiceSpec { name, sname, attrs, clients: cfg.max_clients as usize, active: cfg.max_in_flight_per_client as usize + 4 })
 }
 
-/// Creates a request-response service with the daemon's limits (a macro: iceoryx2
-/// implements `create` separately for fixed and slice payloads).
+/// Opens or creates a request-response service with the daemon's limits (a
+/// macro: iceoryx2 implements `create` separately for fixed and slice payloads).
+/// Opening matters after a crash: clients that still hold the old service keep
+/// it alive, and the restarted daemon becomes its server again. A second live
+/// daemon on the same prefix fails at the server port (one server per service).
 macro_rules! create_rr {
     ($node:expr, $spec:expr, $req:ty, $resp:ty) => {{
         let spec: &ServiceSpec = $spec;
@@ -520,10 +525,10 @@ macro_rules! create_rr {
             .max_nodes(spec.clients + 2)
             .max_active_requests_per_client(spec.active)
             .max_loaned_requests(2)
-            .create_with_attributes(&spec.attrs)
+            .open_or_create_with_attributes(&spec.attrs)
             .map_err(|e| {
                 ServeError::Ipc(format!(
-                    "cannot create {}: {e:?} (another graspd serving this prefix? Stale services of a crashed daemon are removed at start when permissions allow)",
+                    "cannot open or create {}: {e:?} (services of another graspd version, or held by clients of a daemon with other limits?)",
                     spec.name
                 ))
             })
@@ -537,12 +542,14 @@ fn endpoint<P: Debug + IceoryxSend + ?Sized + 'static, R: Debug + ZeroCopySend +
     service: RrFactory<P, R>,
 ) -> Result<Endpoint<P, R>, ServeError> {
     let name = method.service_name(&cfg.service_prefix);
-    let server = ipc!(service.server_builder().create(), format!("server port of {name}"))?;
+    let server = service.server_builder().create().map_err(|e| {
+        ServeError::Ipc(format!("cannot serve {name}: {e:?} (is another graspd serving prefix {:?}?)", cfg.service_prefix))
+    })?;
     let ename = method.notify_service_name(&cfg.service_prefix);
     let esname: ServiceName = ipc!(ename.as_str().try_into(), format!("service name {ename}"))?;
     let clients = cfg.max_clients as usize;
     let event = ipc!(
-        node.service_builder(&esname).event().max_notifiers(clients + 4).max_listeners(2).max_nodes(clients + 4).create(),
+        node.service_builder(&esname).event().max_notifiers(clients + 4).max_listeners(2).max_nodes(clients + 4).open_or_create(),
         format!("cannot create {ename}")
     )?;
     let listener = ipc!(event.listener_builder().create(), format!("listener of {ename}"))?;
@@ -621,8 +628,8 @@ fn dispatch(shared: &Shared, ep: &Endpoints, startup_ns: u64) -> usize {
                 let meta = JobMeta { header: h, category, client, received: t };
                 if let Err((job, s)) = shared.submit(Job::Register { req, meta }) {
                     if let Job::Register { req, meta } = job {
-                        shared.answer(Method::Register, &req, s, None, t, 0);
                         shared.release(Method::Register, meta.client);
+                        shared.answer(Method::Register, &req, s, None, t, 0);
                     }
                 }
             }
@@ -640,8 +647,8 @@ fn dispatch(shared: &Shared, ep: &Endpoints, startup_ns: u64) -> usize {
                 let meta = JobMeta { header: h, category, client, received: t };
                 if let Err((job, s)) = shared.submit(Job::Grasp { req, meta }) {
                     if let Job::Grasp { req, meta } = job {
-                        shared.answer(Method::Grasp, &req, s, None, t, 0);
                         shared.release(Method::Grasp, meta.client);
+                        shared.answer(Method::Grasp, &req, s, None, t, 0);
                     }
                 }
             }
@@ -666,18 +673,23 @@ fn default_cache_dir() -> PathBuf {
 /// Runs the daemon until SIGINT/SIGTERM; returns after in-flight requests finished.
 pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeError> {
     config.validate()?;
+    // iceoryx2's own log (stderr): errors only unless IOX2_LOG_LEVEL says otherwise.
+    iceoryx2::prelude::set_log_level_from_env_or(LogLevel::Error);
     let process_start = opts.process_start.unwrap_or_else(Instant::now);
     let prefix = config.service_prefix.clone();
 
     let node_name: NodeName = ipc!("graspd".try_into(), "node name")?;
+    let ipc_config = ipc_config();
+    // Stale resources of crashed peers (a crashed daemon's server port would
+    // keep this daemon from serving) are removed before anything is created.
+    let background_stop = Arc::new(AtomicBool::new(false));
+    cleanup_dead_peers_guarded(&ipc_config);
     let node = ipc!(
-        NodeBuilder::new().name(&node_name).signal_handling_mode(SignalHandlingMode::HandleTerminationRequests).create::<Ipc>(),
+        NodeBuilder::new().name(&node_name).config(&ipc_config).signal_handling_mode(SignalHandlingMode::HandleTerminationRequests).create::<Ipc>(),
         "cannot create the iceoryx2 node"
     )?;
     // Registers the SIGINT/SIGTERM handlers now (a signal during loading is honoured after it).
     let _ = termination_requested();
-    let cleaned = node.try_cleanup_dead_nodes();
-    tracing::info!(cleanups = cleaned.cleanups, failed = cleaned.failed_cleanups, "removed the stale resources of dead iceoryx2 peers");
 
     let cache_dir = config.cache_dir.clone().unwrap_or_else(default_cache_dir);
     let (engine, times) = Engine::load(&config.categories, &cache_dir)?;
@@ -694,7 +706,8 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
         stats: endpoint(&node, &config, Method::Stats, create_rr!(node, &spec(Method::Stats)?, NoPayload, proto::StatsResponse)?)?,
     };
 
-    let reply_node = ipc!(NodeBuilder::new().name(&node_name).signal_handling_mode(SignalHandlingMode::Disabled).create::<Ipc>(), "reply node")?;
+    let reply_node = ipc!(NodeBuilder::new().name(&node_name).config(&ipc_config).signal_handling_mode(SignalHandlingMode::Disabled).create::<Ipc>(), "reply node")?;
+    start_janitors(&ipc_config, Duration::from_millis(config.housekeeping_ms), background_stop.clone())?;
     let workers = config.worker_count();
     let (opener_tx, opener_rx) = std::sync::mpsc::channel();
     let shared = Arc::new(Shared {
@@ -744,7 +757,7 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
         let _ = std::io::stdout().flush();
     }
 
-    let result = run_loop(&node, &shared, &ep, startup_ns);
+    let result = run_loop(&shared, &ep, startup_ns);
 
     // Drain: new requests get UNAVAILABLE, accepted ones finish (bounded by the grace period).
     shared.draining.store(true, Ordering::Relaxed);
@@ -764,17 +777,18 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
         let s = || Status::new(StatusCode::Unavailable, "the daemon shut down before this request was worked on");
         match job {
             Job::Register { req, meta } => {
-                shared.answer(Method::Register, &req, s(), None, meta.received, 0);
                 shared.release(Method::Register, meta.client);
+                shared.answer(Method::Register, &req, s(), None, meta.received, 0);
             }
             Job::Grasp { req, meta } => {
-                shared.answer(Method::Grasp, &req, s(), None, meta.received, 0);
                 shared.release(Method::Grasp, meta.client);
+                shared.answer(Method::Grasp, &req, s(), None, meta.received, 0);
             }
         }
     }
     let abandoned = shared.in_flight_total();
     shared.stop_workers.store(true, Ordering::Release);
+    background_stop.store(true, Ordering::Release);
     shared.queue_cv.notify_all();
     if abandoned == 0 {
         for h in handles {
@@ -802,6 +816,89 @@ fn shared_engine_handle(shared: &Arc<Shared>) -> super::uds::EngineHandle {
     }
 }
 
+/// iceoryx2 configuration of the daemon's nodes: no implicit dead-node cleanup
+/// (on node creation or destruction, on opening a service). Those cleanups can
+/// block forever on a peer killed at the wrong moment (see
+/// `graspd_proto::hygiene`); the daemon cleans explicitly, off the serving path.
+pub fn ipc_config() -> iceoryx2::config::Config {
+    let mut c = iceoryx2::config::Config::global_config().clone();
+    c.global.node.cleanup_dead_nodes_on_creation = false;
+    c.global.node.cleanup_dead_nodes_on_destruction = false;
+    c.global.service.cleanup_dead_nodes_on_open = false;
+    c
+}
+
+fn janitor_node(config: &iceoryx2::config::Config) -> Option<Node<Ipc>> {
+    let name: NodeName = "graspd-janitor".try_into().ok()?;
+    NodeBuilder::new().name(&name).config(config).signal_handling_mode(SignalHandlingMode::Disabled).create::<Ipc>().ok()
+}
+
+/// Removes the resources of dead iceoryx2 peers, purging abandoned shared
+/// memory meanwhile so that the cleanup cannot hang on it.
+fn cleanup_dead_peers_guarded(config: &iceoryx2::config::Config) {
+    let purged = graspd_proto::hygiene::purge_abandoned_shm(Duration::from_secs(1));
+    let cfg = config.clone();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let spawned = std::thread::Builder::new().name("graspd-cleanup".into()).spawn(move || {
+        let r = janitor_node(&cfg).map(|n| n.try_cleanup_dead_nodes());
+        let _ = tx.send(r);
+    });
+    if spawned.is_err() {
+        return;
+    }
+    let t0 = Instant::now();
+    loop {
+        match rx.recv_timeout(Duration::from_millis(300)) {
+            Ok(Some(c)) => {
+                tracing::info!(cleanups = c.cleanups, failed = c.failed_cleanups, purged, "removed the stale resources of dead iceoryx2 peers");
+                return;
+            }
+            Ok(None) | Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => return,
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
+                graspd_proto::hygiene::purge_abandoned_shm(Duration::from_secs(1));
+                if t0.elapsed() > Duration::from_secs(30) {
+                    tracing::warn!("the cleanup of dead peers takes over 30 s; serving without waiting for it");
+                    return;
+                }
+            }
+        }
+    }
+}
+
+/// Background housekeeping: one thread removes dead peers' resources every
+/// `period`, another purges abandoned shared memory every second (which also
+/// frees the first should a cleanup ever block).
+fn start_janitors(config: &iceoryx2::config::Config, period: Duration, stop: Arc<AtomicBool>) -> Result<(), ServeError> {
+    let cfg = config.clone();
+    let s = stop.clone();
+    std::thread::Builder::new()
+        .name("graspd-janitor".into())
+        .spawn(move || {
+            let Some(node) = janitor_node(&cfg) else { return };
+            while !s.load(Ordering::Acquire) {
+                std::thread::sleep(period);
+                let c = node.try_cleanup_dead_nodes();
+                if c.cleanups > 0 || c.failed_cleanups > 0 {
+                    tracing::info!(cleanups = c.cleanups, failed = c.failed_cleanups, "removed the resources of dead peers");
+                }
+            }
+        })
+        .map_err(|e| ServeError::Ipc(format!("cannot start the janitor: {e}")))?;
+    std::thread::Builder::new()
+        .name("graspd-purger".into())
+        .spawn(move || {
+            while !stop.load(Ordering::Acquire) {
+                std::thread::sleep(Duration::from_secs(1));
+                let n = graspd_proto::hygiene::purge_abandoned_shm(Duration::from_secs(1));
+                if n > 0 {
+                    tracing::info!(removed = n, "removed abandoned shared-memory objects of peers killed while creating them");
+                }
+            }
+        })
+        .map_err(|e| ServeError::Ipc(format!("cannot start the purger: {e}")))?;
+    Ok(())
+}
+
 /// Whether SIGINT/SIGTERM arrived since the last call (iceoryx2's handler sets
 /// the flag; reading it clears it, so the caller must act on a true).
 fn termination_requested() -> bool {
@@ -809,7 +906,7 @@ fn termination_requested() -> bool {
 }
 
 /// The serving loop; returns on SIGINT/SIGTERM.
-fn run_loop(node: &Node<Ipc>, shared: &Shared, ep: &Endpoints, startup_ns: u64) -> Result<(), ServeError> {
+fn run_loop(shared: &Shared, ep: &Endpoints, startup_ns: u64) -> Result<(), ServeError> {
     let housekeeping = Duration::from_millis(shared.config.housekeeping_ms);
     let metrics = (shared.config.metrics_interval_s > 0.0).then(|| Duration::from_secs_f64(shared.config.metrics_interval_s));
     let mut last_house = Instant::now();
@@ -819,10 +916,6 @@ fn run_loop(node: &Node<Ipc>, shared: &Shared, ep: &Endpoints, startup_ns: u64) 
             return;
         }
         last_house = Instant::now();
-        let c = node.try_cleanup_dead_nodes();
-        if c.cleanups > 0 || c.failed_cleanups > 0 {
-            tracing::info!(cleanups = c.cleanups, failed = c.failed_cleanups, "removed the resources of dead peers");
-        }
         lock(&shared.notifiers).evict_idle(Duration::from_secs(30));
         if let Some(every) = metrics {
             if last_metrics.elapsed() >= every {

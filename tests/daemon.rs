@@ -1,0 +1,386 @@
+//! End-to-end: `graspd serve` as a separate process, called through the
+//! graspd-client SDK (and graspctl). Each test runs its own daemon under a
+//! unique service prefix, so the tests run in parallel without colliding.
+//! Clouds are rendered by `graspd cloud` from the built-in test mugs; the
+//! expected answers come from `graspd register` on the same files.
+
+use graspd_client::protocol::{self as proto, Point};
+use graspd_client::{cloudfile, Client, ClientOptions, Cloud, StatusCode, WaitMode};
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+const GRASPD: &str = env!("CARGO_BIN_EXE_graspd");
+const TIMEOUT: Duration = Duration::from_secs(30);
+
+fn graspd_json(args: &[&str]) -> serde_json::Value {
+    let out = Command::new(GRASPD).args(args).env("GRASPD_LOG", "warn").output().expect("graspd runs");
+    assert!(out.status.success(), "graspd {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).expect("JSON")
+}
+
+/// Two rendered mug views and what `graspd register` says about them (this
+/// also builds the mug shape space in the default cache once, before any daemon).
+struct Fixture {
+    _dir: tempfile::TempDir,
+    views: Vec<(PathBuf, Vec<[f32; 3]>, serde_json::Value)>,
+}
+
+fn fixture() -> &'static Fixture {
+    static F: OnceLock<Fixture> = OnceLock::new();
+    F.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let assets = Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/tools/mug");
+        let mut views = Vec::new();
+        for (mesh, view) in [("mug_test_00.obj", "0"), ("mug_test_01.obj", "3")] {
+            let out = dir.path().join(format!("{mesh}.{view}.ply"));
+            let m = assets.join(mesh);
+            graspd_json(&["cloud", "--mesh", m.to_str().unwrap(), "--view", view, "--seed", "1", "--out", out.to_str().unwrap(), "--json"]);
+            let expected = graspd_json(&["register", "--category", "mug", "--cloud", out.to_str().unwrap(), "--json"]);
+            let points = cloudfile::read_cloud(&out).unwrap();
+            views.push((out, points, expected));
+        }
+        Fixture { _dir: dir, views }
+    })
+}
+
+static COUNTER: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+
+fn unique_prefix(name: &str) -> String {
+    let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    format!("graspd_test_{}_{n}_{name}", std::process::id())
+}
+
+struct Daemon {
+    child: Child,
+    prefix: String,
+    dir: tempfile::TempDir,
+    stdout: Option<std::sync::mpsc::Receiver<String>>,
+}
+
+impl Daemon {
+    /// Starts a mug-only daemon with `extra` configuration lines; waits until it serves.
+    fn start(name: &str, extra: &str) -> Daemon {
+        fixture();
+        let prefix = unique_prefix(name);
+        Self::start_with_prefix(&prefix, extra, &[])
+    }
+
+    fn start_with_prefix(prefix: &str, extra: &str, args: &[&str]) -> Daemon {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = dir.path().join("graspd.toml");
+        // Test defaults, unless `extra` sets the key.
+        let base = [format!("service_prefix = \"{prefix}\""), "categories = [\"mug\"]".into(), "workers = 2".into(), "housekeeping_ms = 100".into()];
+        let keys: Vec<&str> = extra.lines().filter_map(|l| l.split('=').next()).map(str::trim).collect();
+        let mut text: Vec<String> = base.into_iter().filter(|l| !keys.contains(&l.split('=').next().unwrap().trim())).collect();
+        text.push(extra.to_owned());
+        std::fs::write(&cfg, text.join("\n")).unwrap();
+        let mut child = Command::new(GRASPD)
+            .args(["serve", "--json", "--config", cfg.to_str().unwrap()])
+            .args(args)
+            .env("GRASPD_LOG", "warn")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("graspd serve starts");
+        let (tx, rx) = std::sync::mpsc::channel();
+        let out = child.stdout.take().unwrap();
+        std::thread::spawn(move || {
+            for line in BufReader::new(out).lines().map_while(Result::ok) {
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        let ready = rx.recv_timeout(Duration::from_secs(120)).expect("the daemon reports it serves");
+        let v: serde_json::Value = serde_json::from_str(&ready).expect("ready line is JSON");
+        assert_eq!(v["ready"], true, "{ready}");
+        Daemon { child, prefix: prefix.to_owned(), dir, stdout: Some(rx) }
+    }
+
+    fn options(&self) -> ClientOptions {
+        ClientOptions { prefix: self.prefix.clone(), ..ClientOptions::default() }
+    }
+
+    fn client(&self) -> Client {
+        Client::connect(self.options()).expect("client connects")
+    }
+
+    fn signal(&self, sig: &str) {
+        let ok = Command::new("kill").args(["-s", sig, &self.child.id().to_string()]).status().unwrap().success();
+        assert!(ok, "kill -s {sig}");
+    }
+
+    /// Waits for the daemon to exit; returns its exit status and the JSON report it printed.
+    fn wait_exit(&mut self, within: Duration) -> (std::process::ExitStatus, String) {
+        let t0 = Instant::now();
+        loop {
+            if let Some(st) = self.child.try_wait().unwrap() {
+                let rest: Vec<String> = self.stdout.take().map(|rx| rx.iter().collect()).unwrap_or_default();
+                return (st, rest.join("\n"));
+            }
+            assert!(t0.elapsed() < within, "the daemon did not exit within {within:?}");
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+}
+
+impl Drop for Daemon {
+    /// A graceful stop (the daemon removes its shared-memory resources), SIGKILL after 5 s.
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            let _ = Command::new("kill").args(["-s", "TERM", &self.child.id().to_string()]).status();
+            let t0 = Instant::now();
+            while let Ok(None) = self.child.try_wait() {
+                if t0.elapsed() > Duration::from_secs(5) {
+                    let _ = self.child.kill();
+                    break;
+                }
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        }
+        let _ = self.child.wait();
+        let _ = &self.dir;
+    }
+}
+
+fn assert_same_registration(got: &graspd_client::Registration, expected: &serde_json::Value) {
+    let latent: Vec<f64> = expected["latent"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    assert_eq!(got.latent, latent, "latent");
+    assert_eq!(got.scale, expected["scale"].as_f64().unwrap());
+    let kps = expected["keypoints"].as_array().unwrap();
+    assert_eq!(got.keypoints.len(), kps.len());
+    for (g, e) in got.keypoints.iter().zip(kps) {
+        assert_eq!(g.name, e["name"].as_str().unwrap());
+        let p: Vec<f64> = e["position"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+        assert_eq!(g.position.to_vec(), p, "{}", g.name);
+    }
+    let q: Vec<f64> = expected["pose"]["rotation_xyzw"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    assert_eq!(got.pose.rotation_xyzw.to_vec(), q);
+    assert_eq!(got.fit.confident, expected["fit"]["confident"].as_bool().unwrap());
+}
+
+#[test]
+fn concurrent_clients_get_the_same_answers_as_the_cli() {
+    let d = Daemon::start("concurrent", "");
+    let f = fixture();
+    let threads: Vec<_> = (0..4)
+        .map(|t| {
+            let opts = d.options();
+            std::thread::spawn(move || {
+                let f = fixture();
+                let mut c = Client::connect(opts).unwrap();
+                for i in 0..3 {
+                    let (_, points, expected) = &f.views[(t + i) % f.views.len()];
+                    let r = c.register("mug", points, TIMEOUT).unwrap();
+                    assert_same_registration(&r, expected);
+                    assert_eq!(r.points as usize, points.len());
+                    assert!(c.health().unwrap().serving);
+                }
+            })
+        })
+        .collect();
+    for t in threads {
+        t.join().expect("client thread");
+    }
+    let mut c = d.client();
+    let cats = c.categories().unwrap();
+    assert_eq!(cats.len(), 1);
+    assert_eq!(cats[0].name, "mug");
+    assert_eq!(cats[0].keypoints.len(), f.views[0].2["keypoints"].as_array().unwrap().len());
+    let s = c.stats().unwrap();
+    let reg = &s.methods[proto::Method::Register as usize];
+    assert_eq!(reg.requests, 12);
+    assert_eq!(reg.by_status[0], 12);
+    assert!(reg.compute_p50_us > 0.0 && reg.latency_p50_us >= reg.compute_p50_us);
+    // graspctl reads the same daemon (same JSON shape as `graspd register`: keypoints, pose, fit).
+    let graspctl = Path::new(GRASPD).with_file_name("graspctl");
+    if graspctl.exists() {
+        let out = Command::new(&graspctl)
+            .args(["--prefix", &d.prefix, "register", "--category", "mug", "--cloud", f.views[0].0.to_str().unwrap(), "--json"])
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stdout));
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(v["keypoints"], f.views[0].2["keypoints"]);
+        assert_eq!(v["pose"], f.views[0].2["pose"]);
+        assert_eq!(v["latent"], f.views[0].2["latent"]);
+    }
+}
+
+#[test]
+fn bad_inputs_get_their_status_and_the_daemon_keeps_serving() {
+    let d = Daemon::start("bad", "max_points = 50000\nmax_in_flight_per_client = 1");
+    let f = fixture();
+    let good: Vec<Point> = Point::from_arrays(&f.views[0].1).to_vec();
+    let mut c = d.client();
+    let set_mug = |h: &mut proto::RequestHeader| {
+        h.category = proto::str_to_text("mug");
+        h.up_in_cloud = [0.0, 0.0, 1.0];
+    };
+    let code = |r: Result<(proto::ResponseHeader, proto::RegisterResponse), graspd_client::Error>| {
+        let (h, _) = r.expect("an answer");
+        (StatusCode::from_u32(h.status), proto::text_lossy(&h.message))
+    };
+    let cases: Vec<(&str, Box<dyn Fn(&mut proto::RequestHeader)>, Vec<Point>, StatusCode)> = vec![
+        ("wrong protocol version", Box::new(move |h| { set_mug(h); h.protocol_version = 99 }), good.clone(), StatusCode::InvalidArgument),
+        ("unknown flags", Box::new(move |h| { set_mug(h); h.flags = 4 }), good.clone(), StatusCode::InvalidArgument),
+        ("unknown category", Box::new(move |h| { set_mug(h); h.category = proto::str_to_text("teapot") }), good.clone(), StatusCode::NotFound),
+        ("garbage category bytes", Box::new(move |h| { set_mug(h); h.category = [0xfe; 32] }), good.clone(), StatusCode::InvalidArgument),
+        ("garbage after the NUL", Box::new(move |h| { set_mug(h); h.category[20] = b'x' }), good.clone(), StatusCode::InvalidArgument),
+        ("garbage frame name", Box::new(move |h| { set_mug(h); h.cloud_frame = [0xc3; 32] }), good.clone(), StatusCode::InvalidArgument),
+        ("empty cloud", Box::new(set_mug), vec![], StatusCode::InvalidArgument),
+        ("NaN", Box::new(set_mug), { let mut v = good.clone(); v[7].0[1] = f32::NAN; v }, StatusCode::InvalidArgument),
+        ("Inf", Box::new(set_mug), { let mut v = good.clone(); v[0].0[2] = f32::NEG_INFINITY; v }, StatusCode::InvalidArgument),
+        ("NaN up", Box::new(move |h| { set_mug(h); h.up_in_cloud = [f32::NAN, 0.0, 1.0] }), good.clone(), StatusCode::InvalidArgument),
+        ("too many points", Box::new(set_mug), vec![Point([0.01, 0.02, 0.03]); 50_001], StatusCode::ResourceExhausted),
+        ("expired deadline", Box::new(move |h| { set_mug(h); h.deadline_unix_ns = 1 }), good.clone(), StatusCode::DeadlineExceeded),
+        ("all points at one place", Box::new(set_mug), vec![Point([0.1, 0.2, 0.3]); 500], StatusCode::InvalidArgument),
+        ("a cloud in millimetres", Box::new(set_mug), good.iter().map(|p| Point(p.0.map(|x| x * 1000.0))).collect(), StatusCode::InvalidArgument),
+    ];
+    for (what, edit, points, want) in &cases {
+        let (got, msg) = code(c.register_raw(Cloud::Slice(points), |h| edit(h), TIMEOUT));
+        assert_eq!(got, *want, "{what}: {msg}");
+        assert!(!msg.is_empty(), "{what}: a status without a message");
+    }
+    // Grasp: its own checks, then FAILED_PRECONDITION in a build without the grasp solver.
+    let (h, _) = c.grasp_raw(Cloud::Slice(&good), |h| { set_mug(h); h.table_mode = 7 }, TIMEOUT).unwrap();
+    assert_eq!(StatusCode::from_u32(h.status), StatusCode::InvalidArgument);
+    let e = c.grasp("mug", &f.views[0].1, TIMEOUT).unwrap_err();
+    if !c.health().unwrap().grasp_available {
+        assert_eq!(e.code, StatusCode::FailedPrecondition, "{e}");
+        assert!(e.message.contains("not available"), "{e}");
+    }
+    // More than max_in_flight_per_client (1) requests from one client at once.
+    let first = c.start_register("mug", &f.views[0].1, TIMEOUT).unwrap();
+    let second = c.start_register("mug", &f.views[1].1, TIMEOUT).unwrap();
+    let r2 = c.wait_register(second);
+    assert_eq!(r2.unwrap_err().code, StatusCode::ResourceExhausted);
+    assert_same_registration(&c.wait_register(first).unwrap(), &f.views[0].2);
+    // The daemon still serves, correctly, and counted every answer.
+    assert_same_registration(&c.register("mug", &f.views[1].1, TIMEOUT).unwrap(), &f.views[1].2);
+    let s = c.stats().unwrap();
+    let reg = &s.methods[proto::Method::Register as usize];
+    assert_eq!(reg.requests as usize, cases.len() + 3);
+    assert_eq!(reg.by_status[StatusCode::InvalidArgument as usize], 11);
+    assert_eq!(reg.by_status[StatusCode::NotFound as usize], 1);
+    assert_eq!(reg.by_status[StatusCode::DeadlineExceeded as usize], 1);
+    assert_eq!(reg.by_status[StatusCode::ResourceExhausted as usize], 2);
+    assert_eq!(reg.in_flight, 0);
+}
+
+#[test]
+fn a_client_killed_mid_request_costs_nothing() {
+    let d = Daemon::start("killed", "");
+    let f = fixture();
+    let graspctl = Path::new(GRASPD).with_file_name("graspctl");
+    if !graspctl.exists() {
+        eprintln!("skipped: {} is not built (cargo test --workspace builds it)", graspctl.display());
+        return;
+    }
+    // graspctl processes killed at every stage: starting, creating their
+    // iceoryx2 ports, sending, waiting while the request is worked on.
+    for (i, delay_ms) in [1u64, 3, 5, 8, 12, 18, 25].into_iter().enumerate() {
+        let mut child = Command::new(&graspctl)
+            .args(["--prefix", &d.prefix, "--wait", "event", "register", "--category", "mug", "--cloud", f.views[i % 2].0.to_str().unwrap()])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(Duration::from_millis(delay_ms));
+        child.kill().unwrap();
+        child.wait().unwrap();
+    }
+    // New clients connect (their node creation must not hang on the dead ones' leftovers).
+    let mut c = d.client();
+    assert_same_registration(&c.register("mug", &f.views[0].1, TIMEOUT).unwrap(), &f.views[0].2);
+    // The dead clients' resources are removed by the daemon's housekeeping.
+    let t0 = Instant::now();
+    loop {
+        let s = c.stats().unwrap();
+        let in_flight: u32 = s.methods.iter().map(|m| m.in_flight).sum();
+        if s.clients_connected == 1 && in_flight == 0 {
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(10), "dead clients linger: {} connected, {in_flight} in flight", s.clients_connected);
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(c.health().unwrap().serving);
+}
+
+#[test]
+fn a_waiting_client_survives_a_daemon_crash_and_restart() {
+    let mut d = Daemon::start("restart", "");
+    let f = fixture();
+    let opts = d.options();
+    let first_pid = d.client().health().unwrap().pid;
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let worker = {
+        let stop = stop.clone();
+        std::thread::spawn(move || {
+            let f = fixture();
+            let mut c = Client::connect(opts).unwrap();
+            let mut max_attempts = 0;
+            let mut calls = 0;
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                let r = c.register("mug", &f.views[0].1, TIMEOUT).expect("the call survives the restart");
+                assert_same_registration(&r, &f.views[0].2);
+                max_attempts = max_attempts.max(c.last_call().attempts);
+                calls += 1;
+            }
+            (calls, max_attempts, c.health().unwrap().pid)
+        })
+    };
+    std::thread::sleep(Duration::from_millis(300));
+    d.signal("KILL");
+    let _ = d.wait_exit(Duration::from_secs(5));
+    std::thread::sleep(Duration::from_millis(200));
+    let prefix = d.prefix.clone();
+    let d2 = Daemon::start_with_prefix(&prefix, "", &[]);
+    std::thread::sleep(Duration::from_millis(300));
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let (calls, max_attempts, pid) = worker.join().expect("client thread");
+    assert!(calls > 2, "{calls} calls");
+    assert!(max_attempts >= 2, "no call had to be resent ({calls} calls)");
+    assert_ne!(pid, first_pid, "the client talks to the new daemon");
+    assert_eq!(pid, d2.client().health().unwrap().pid);
+}
+
+#[test]
+fn sigterm_while_busy_finishes_the_requests_in_flight() {
+    let mut d = Daemon::start("sigterm", "workers = 1\nmax_in_flight_per_client = 4");
+    let f = fixture();
+    let mut c = d.client();
+    let pending: Vec<_> = (0..3).map(|i| c.start_register("mug", &f.views[i % 2].1, TIMEOUT).unwrap()).collect();
+    // Busy: one request on the worker, the others queued behind it.
+    let t0 = Instant::now();
+    while c.stats().unwrap().queued == 0 {
+        assert!(t0.elapsed() < Duration::from_secs(5), "the requests never queued");
+    }
+    d.signal("TERM");
+    for (i, p) in pending.into_iter().enumerate() {
+        let r = c.wait_register(p).expect("an in-flight request finishes");
+        assert_same_registration(&r, &f.views[i % 2].2);
+    }
+    let (status, report) = d.wait_exit(Duration::from_secs(20));
+    assert!(status.success(), "{status:?}");
+    let v: serde_json::Value = serde_json::from_str(&report).unwrap_or_else(|e| panic!("{e}: {report}"));
+    assert_eq!(v["abandoned"], 0);
+    assert!(v["requests"].as_u64().unwrap() >= 3);
+    // Gone: a new client finds no daemon.
+    let e = Client::connect(ClientOptions { prefix: d.prefix.clone(), ..ClientOptions::default() }).err().expect("no daemon");
+    assert_eq!(e.code, StatusCode::Unavailable, "{e}");
+}
+
+#[test]
+fn polling_mode_serves_spinning_and_event_clients() {
+    let d = Daemon::start("poll", "waiting = \"poll\"\nworkers = 1\nworker_spin_us = 50");
+    let f = fixture();
+    for wait in [WaitMode::Auto, WaitMode::Event] {
+        let mut c = Client::connect(ClientOptions { wait, ..d.options() }).unwrap();
+        assert_eq!(c.health().unwrap().waiting, "poll");
+        assert_same_registration(&c.register("mug", &f.views[1].1, TIMEOUT).unwrap(), &f.views[1].2);
+    }
+}
