@@ -376,7 +376,7 @@ fn sigterm_while_busy_finishes_the_requests_in_flight() {
 
 #[test]
 fn polling_mode_serves_spinning_and_event_clients() {
-    let d = Daemon::start("poll", "waiting = \"poll\"\nworkers = 1\nworker_spin_us = 50");
+    let d = Daemon::start("poll", "waiting = \"poll\"\nworkers = 1");
     let f = fixture();
     for wait in [WaitMode::Auto, WaitMode::Event] {
         let mut c = Client::connect(ClientOptions { wait, ..d.options() }).unwrap();

@@ -509,7 +509,8 @@ impl Client {
             if now >= deadline {
                 return Err(Error::new(StatusCode::DeadlineExceeded, "no response before the deadline"));
             }
-            if now.duration_since(last_check) >= Duration::from_millis(50) {
+            // The daemon's liveness (a directory scan) only for waits longer than usual.
+            if now.duration_since(last_check) >= Duration::from_millis(200) {
                 last_check = now;
                 if !daemon_alive(node, conn) {
                     return Err(Error::lost("the daemon died while the request was pending"));

@@ -73,8 +73,18 @@ struct CloudArgs {
     seed: u64,
 }
 
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum BenchMethod {
+    /// Register a cloud of --points points (and the same over --uds).
+    Register,
+    /// Health: an empty request, the transport alone.
+    Health,
+}
+
 #[derive(clap::Args)]
 struct BenchArgs {
+    #[arg(long, value_enum, default_value_t = BenchMethod::Register)]
+    method: BenchMethod,
     /// Points per request (a synthetic mug-sized partial view unless --cloud).
     #[arg(long, default_value_t = 20_000)]
     points: usize,
@@ -331,17 +341,23 @@ fn bench(cli: &Cli, b: &BenchArgs, opts: ClientOptions) -> Result<(), Failure> {
     let timeout = Duration::from_millis(cli.timeout_ms);
     let co = CloudOptions::default();
     for _ in 0..b.warmup {
-        c.register_with(&b.category, &cloud, &co, timeout)?;
+        match b.method {
+            BenchMethod::Register => drop(c.register_with(&b.category, &cloud, &co, timeout)?),
+            BenchMethod::Health => drop(c.health()?),
+        }
     }
     let mut shm = Samples::default();
     for _ in 0..b.requests {
-        c.register_with(&b.category, &cloud, &co, timeout)?;
+        match b.method {
+            BenchMethod::Register => drop(c.register_with(&b.category, &cloud, &co, timeout)?),
+            BenchMethod::Health => drop(c.health()?),
+        }
         let t = c.last_call();
         shm.push(t.rtt_ns, t.fill_ns, t.server_ns, t.compute_ns);
     }
-    let baseline = match &b.uds {
-        Some(path) => Some(bench_uds(path, b, &cloud)?),
-        None => None,
+    let baseline = match (&b.uds, b.method) {
+        (Some(path), BenchMethod::Register) => Some(bench_uds(path, b, &cloud)?),
+        _ => None,
     };
     let client_wait = match (c.options().wait, health.waiting) {
         (WaitMode::Spin, _) | (WaitMode::Auto, "poll") => "spin",
@@ -357,7 +373,11 @@ fn bench(cli: &Cli, b: &BenchArgs, opts: ClientOptions) -> Result<(), Failure> {
     let mut v = summary(&shm);
     v["rtt_excl_fill_us"] = serde_json::json!({"p50": pct_us(&shm.rtt_excl_fill, 0.5), "p99": pct_us(&shm.rtt_excl_fill, 0.99), "max": pct_us(&shm.rtt_excl_fill, 1.0)});
     v["transport_overhead_excl_fill_us"] = serde_json::json!({"p50": pct_us(&shm.overhead_excl_fill, 0.5), "p99": pct_us(&shm.overhead_excl_fill, 0.99)});
-    v["points"] = serde_json::json!(b.points);
+    v["method"] = serde_json::json!(match b.method {
+        BenchMethod::Register => "register",
+        BenchMethod::Health => "health",
+    });
+    v["points"] = serde_json::json!(if b.method == BenchMethod::Register { b.points } else { 0 });
     v["requests"] = serde_json::json!(b.requests);
     v["category"] = serde_json::json!(b.category);
     v["daemon_waiting"] = serde_json::json!(health.waiting);
@@ -379,9 +399,13 @@ fn bench(cli: &Cli, b: &BenchArgs, opts: ClientOptions) -> Result<(), Failure> {
         "transport_overhead_us": "per request rtt minus engine time, then percentiles",
     });
     print(cli.json, &v, || {
+        let what = match b.method {
+            BenchMethod::Register => format!("register, {} points", b.points),
+            BenchMethod::Health => "health".to_owned(),
+        };
         println!(
-            "{} points, {} requests, daemon {} / client {}: rtt p50 {:.1} µs p99 {:.1} µs, engine p50 {:.1} µs, overhead p50 {:.1} µs p99 {:.1} µs (excluding the cloud copy: p50 {:.1} µs)",
-            b.points, b.requests, health.waiting, client_wait,
+            "{what}, {} requests, daemon {} / client {}: rtt p50 {:.1} µs p99 {:.1} µs, engine p50 {:.1} µs, overhead p50 {:.1} µs p99 {:.1} µs (excluding the cloud copy: p50 {:.1} µs)",
+            b.requests, health.waiting, client_wait,
             pct_us(&shm.rtt, 0.5), pct_us(&shm.rtt, 0.99), pct_us(&shm.compute, 0.5),
             pct_us(&shm.overhead, 0.5), pct_us(&shm.overhead, 0.99), pct_us(&shm.overhead_excl_fill, 0.5)
         );

@@ -29,11 +29,10 @@ pub struct Config {
     pub max_clients: u32,
     /// Requests one client may have in flight; more get RESOURCE_EXHAUSTED.
     pub max_in_flight_per_client: u32,
-    /// Engine worker threads; 0 = one per available core.
+    /// Requests worked on at once (engine threads); 0 = one per available core. The daemon runs one
+    /// thread more, so that one always receives.
     pub workers: u32,
     pub waiting: Waiting,
-    /// How long an idle worker looks for the next request before it sleeps, microseconds.
-    pub worker_spin_us: u64,
     /// Requests slower than this (receipt to answer) are logged and counted, milliseconds.
     pub slow_request_ms: f64,
     /// Period of housekeeping (dead-peer cleanup, idle reply notifiers), milliseconds.
@@ -58,7 +57,6 @@ impl Default for Config {
             max_in_flight_per_client: 4,
             workers: 0,
             waiting: Waiting::Event,
-            worker_spin_us: 200,
             slow_request_ms: 250.0,
             housekeeping_ms: 500,
             shutdown_grace_s: 30.0,
@@ -123,9 +121,6 @@ impl Config {
         }
         if self.housekeeping_ms == 0 || self.housekeeping_ms > 60_000 {
             return bad(format!("housekeeping_ms {}: 1 to 60000", self.housekeeping_ms));
-        }
-        if self.worker_spin_us > 1_000_000 {
-            return bad(format!("worker_spin_us {}: at most 1000000", self.worker_spin_us));
         }
         Ok(())
     }

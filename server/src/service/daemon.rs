@@ -24,8 +24,8 @@ use iceoryx2::waitset::WaitSetRunResult;
 use std::collections::{HashMap, VecDeque};
 use std::fmt::Debug;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 /// iceoryx2's thread-safe IPC variant: requests can move to worker threads.
@@ -184,13 +184,27 @@ struct Shared {
     stats: Mutex<Stats>,
     in_flight: Mutex<HashMap<u128, u32>>,
     notifiers: Mutex<Notifiers>,
+    /// Admitted requests no thread could take yet (all `workers` busy).
     queue: Mutex<VecDeque<Job>>,
-    queue_cv: Condvar,
     queue_capacity: usize,
+    /// Threads running an engine job, at most `max_running` (the `workers` option).
+    running: AtomicUsize,
+    max_running: usize,
+    /// Held by the one thread that receives requests (the leader).
+    leadership: Mutex<LeaderState>,
     stop_workers: AtomicBool,
     draining: AtomicBool,
+    drain_started: Mutex<Option<Instant>>,
+    fatal: Mutex<Option<String>>,
     slow_ns: u64,
     started: Instant,
+    startup_ns: u64,
+}
+
+/// Housekeeping clocks, kept by whichever thread leads.
+struct LeaderState {
+    last_house: Instant,
+    last_metrics: Instant,
 }
 
 /// Locks a mutex; a poisoned one (a panic while held, which the workers'
@@ -433,40 +447,22 @@ impl Shared {
         })
     }
 
-    fn worker_loop(&self) {
-        // Spinning a little after each job lets back-to-back requests skip a thread wake-up.
-        let spin = Duration::from_micros(self.config.worker_spin_us);
-        let polite = self.config.waiting == Waiting::Event;
-        loop {
-            let job = {
-                let mut spin_start: Option<Instant> = None;
-                let mut q = lock(&self.queue);
-                loop {
-                    if let Some(j) = q.pop_front() {
-                        break Some(j);
-                    }
-                    if self.stop_workers.load(Ordering::Acquire) {
-                        break None;
-                    }
-                    let t = *spin_start.get_or_insert_with(Instant::now);
-                    if t.elapsed() < spin {
-                        drop(q);
-                        if polite {
-                            std::thread::yield_now();
-                        } else {
-                            std::hint::spin_loop();
-                        }
-                        q = lock(&self.queue);
-                    } else {
-                        q = self.queue_cv.wait_timeout(q, Duration::from_millis(200)).map(|(g, _)| g).unwrap_or_else(|p| p.into_inner().0);
-                    }
-                }
-            };
-            match job {
-                Some(j) => self.run_job(j),
-                None => return,
-            }
+    /// Reserves one of the `workers` engine slots.
+    fn try_reserve(&self) -> bool {
+        self.running.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < self.max_running).then_some(n + 1)).is_ok()
+    }
+
+    fn unreserve(&self) {
+        self.running.fetch_sub(1, Ordering::AcqRel);
+    }
+
+    /// A queued job with a reserved engine slot.
+    fn pop_reserved(&self) -> Option<Job> {
+        let mut q = lock(&self.queue);
+        if q.is_empty() || !self.try_reserve() {
+            return None;
         }
+        q.pop_front()
     }
 
     fn submit(&self, job: Job) -> Result<(), (Job, Status)> {
@@ -475,9 +471,53 @@ impl Shared {
             return Err((job, Status::new(StatusCode::ResourceExhausted, "the daemon's work queue is full")));
         }
         q.push_back(job);
-        drop(q);
-        self.queue_cv.notify_one();
         Ok(())
+    }
+
+    fn begin_drain(&self) {
+        let mut t = lock(&self.drain_started);
+        if t.is_none() {
+            *t = Some(Instant::now());
+            self.draining.store(true, Ordering::Relaxed);
+            tracing::info!(in_flight = self.in_flight_total(), "shutting down: finishing the requests in flight");
+        }
+    }
+
+    fn fail(&self, e: String) {
+        tracing::error!("{e}; shutting down");
+        lock(&self.fatal).get_or_insert(e);
+        self.begin_drain();
+    }
+
+    /// Answers every queued request UNAVAILABLE (the grace period is over).
+    fn reject_queued(&self) {
+        let leftover: Vec<Job> = lock(&self.queue).drain(..).collect();
+        for job in leftover {
+            let s = || Status::new(StatusCode::Unavailable, "the daemon shut down before this request was worked on");
+            match job {
+                Job::Register { req, meta } => {
+                    self.release(Method::Register, meta.client);
+                    self.answer(Method::Register, &req, s(), None, meta.received, 0);
+                }
+                Job::Grasp { req, meta } => {
+                    self.release(Method::Grasp, meta.client);
+                    self.answer(Method::Grasp, &req, s(), None, meta.received, 0);
+                }
+            }
+        }
+    }
+
+    /// Once draining: true when everything accepted is answered or the grace period is over.
+    fn drained(&self) -> bool {
+        let Some(t) = *lock(&self.drain_started) else { return false };
+        if self.in_flight_total() == 0 {
+            return true;
+        }
+        if t.elapsed() > Duration::from_secs_f64(self.config.shutdown_grace_s) {
+            self.reject_queued();
+            return true;
+        }
+        false
     }
 }
 
@@ -579,14 +619,18 @@ impl Endpoints {
     }
 }
 
-/// Drains every server; returns how many requests were handled.
-fn dispatch(shared: &Shared, ep: &Endpoints, startup_ns: u64) -> usize {
+/// One pass over every server: answers plain requests and invalid ones, and
+/// admits valid Register/Grasp requests. With `take`, the first admitted one
+/// that finds a free engine slot is returned for the calling thread to run
+/// (the pass stops there; the next leader carries on); the others are queued.
+/// Returns the number of requests handled and the job taken.
+fn dispatch(shared: &Shared, ep: &Endpoints, take: bool) -> (usize, Option<Job>) {
     let mut handled = 0;
     // Plain methods: answered here.
     while let Ok(Some(req)) = ep.health.server.receive() {
         handled += 1;
         let t = Instant::now();
-        let body = shared.health(startup_ns);
+        let body = shared.health(shared.startup_ns);
         // Health is answered even while draining (it reports DRAINING).
         let h = *req.user_header();
         let status = match shared.check_header(&h) {
@@ -615,46 +659,37 @@ fn dispatch(shared: &Shared, ep: &Endpoints, startup_ns: u64) -> usize {
             Err(s) => shared.answer(Method::Stats, &req, s, None, t, 0),
         }
     }
-    // Cloud methods: validated here, worked on by the workers.
-    while let Ok(Some(req)) = ep.register.server.receive() {
-        handled += 1;
-        let t = Instant::now();
-        let h = *req.user_header();
-        let client = req.origin().value();
-        let checked = shared.check_header(&h).and_then(|_| shared.check_cloud(Method::Register, &h, req.payload().len())).and_then(|c| shared.admit(Method::Register, client).map(|_| c));
-        match checked {
-            Err(s) => shared.answer(Method::Register, &req, s, None, t, 0),
-            Ok(category) => {
-                let meta = JobMeta { header: h, category, client, received: t };
-                if let Err((job, s)) = shared.submit(Job::Register { req, meta }) {
-                    if let Job::Register { req, meta } = job {
-                        shared.release(Method::Register, meta.client);
-                        shared.answer(Method::Register, &req, s, None, t, 0);
+    // Cloud methods: validated here; run by this thread or queued.
+    macro_rules! cloud {
+        ($server:expr, $method:expr, $variant:ident) => {
+            while let Ok(Some(req)) = $server.receive() {
+                handled += 1;
+                let t = Instant::now();
+                let h = *req.user_header();
+                let client = req.origin().value();
+                let checked = shared
+                    .check_header(&h)
+                    .and_then(|_| shared.check_cloud($method, &h, req.payload().len()))
+                    .and_then(|c| shared.admit($method, client).map(|_| c));
+                match checked {
+                    Err(s) => shared.answer($method, &req, s, None, t, 0),
+                    Ok(category) => {
+                        let job = Job::$variant { req, meta: JobMeta { header: h, category, client, received: t } };
+                        if take && shared.try_reserve() {
+                            return (handled, Some(job));
+                        }
+                        if let Err((Job::$variant { req, meta }, s)) = shared.submit(job) {
+                            shared.release($method, meta.client);
+                            shared.answer($method, &req, s, None, t, 0);
+                        }
                     }
                 }
             }
-        }
+        };
     }
-    while let Ok(Some(req)) = ep.grasp.server.receive() {
-        handled += 1;
-        let t = Instant::now();
-        let h = *req.user_header();
-        let client = req.origin().value();
-        let checked = shared.check_header(&h).and_then(|_| shared.check_cloud(Method::Grasp, &h, req.payload().len())).and_then(|c| shared.admit(Method::Grasp, client).map(|_| c));
-        match checked {
-            Err(s) => shared.answer(Method::Grasp, &req, s, None, t, 0),
-            Ok(category) => {
-                let meta = JobMeta { header: h, category, client, received: t };
-                if let Err((job, s)) = shared.submit(Job::Grasp { req, meta }) {
-                    if let Job::Grasp { req, meta } = job {
-                        shared.release(Method::Grasp, meta.client);
-                        shared.answer(Method::Grasp, &req, s, None, t, 0);
-                    }
-                }
-            }
-        }
-    }
-    handled
+    cloud!(ep.register.server, Method::Register, Register);
+    cloud!(ep.grasp.server, Method::Grasp, Grasp);
+    (handled, None)
 }
 
 /// Options given on the command line on top of the configuration.
@@ -710,8 +745,15 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
     start_janitors(&ipc_config, Duration::from_millis(config.housekeeping_ms), background_stop.clone())?;
     let workers = config.worker_count();
     let (opener_tx, opener_rx) = std::sync::mpsc::channel();
+    let startup_ns = process_start.elapsed().as_nanos() as u64;
     let shared = Arc::new(Shared {
         queue_capacity: (config.max_clients as usize * config.max_in_flight_per_client as usize).max(1),
+        running: AtomicUsize::new(0),
+        max_running: workers,
+        leadership: Mutex::new(LeaderState { last_house: Instant::now(), last_metrics: Instant::now() }),
+        drain_started: Mutex::new(None),
+        fatal: Mutex::new(None),
+        startup_ns,
         slow_ns: (config.slow_request_ms * 1e6) as u64,
         notifiers: Mutex::new(Notifiers { entries: HashMap::new(), capacity: 4 * config.max_clients as usize, opener: opener_tx }),
         engine,
@@ -719,7 +761,6 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
         stats: Mutex::new(Stats::new()),
         in_flight: Mutex::new(HashMap::new()),
         queue: Mutex::new(VecDeque::new()),
-        queue_cv: Condvar::new(),
         stop_workers: AtomicBool::new(false),
         draining: AtomicBool::new(false),
         started: Instant::now(),
@@ -731,17 +772,10 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
             .spawn(move || reply_opener(reply_node, prefix, opener_rx, weak))
             .map_err(|e| ServeError::Ipc(format!("cannot start the reply thread: {e}")))?;
     }
-    let mut handles = Vec::new();
-    for i in 0..workers {
-        let s = shared.clone();
-        let h = std::thread::Builder::new().name(format!("graspd-worker-{i}")).spawn(move || s.worker_loop()).map_err(|e| ServeError::Ipc(format!("cannot start a worker: {e}")))?;
-        handles.push(h);
-    }
     let _uds = match &shared.config.uds_baseline {
         Some(path) => Some(super::uds::start(path, shared_engine_handle(&shared)).map_err(|e| ServeError::Ipc(format!("uds baseline {}: {e}", path.display())))?),
         None => None,
     };
-    let startup_ns = process_start.elapsed().as_nanos() as u64;
     tracing::info!(
         prefix = %prefix,
         waiting = ?shared.config.waiting,
@@ -757,39 +791,24 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
         let _ = std::io::stdout().flush();
     }
 
-    let result = run_loop(&shared, &ep, startup_ns);
+    // `workers` engine slots, one more thread so that one always receives:
+    // the thread that receives a Register/Grasp runs it itself and hands
+    // receiving to another (no hand-off on the request's path).
+    let ep = Arc::new(ep);
+    let mut handles = Vec::new();
+    for i in 0..workers {
+        let (s, e) = (shared.clone(), ep.clone());
+        let h = std::thread::Builder::new()
+            .name(format!("graspd-{i}"))
+            .spawn(move || thread_main(&s, &e))
+            .map_err(|e| ServeError::Ipc(format!("cannot start a thread: {e}")))?;
+        handles.push(h);
+    }
+    thread_main(&shared, &ep);
 
-    // Drain: new requests get UNAVAILABLE, accepted ones finish (bounded by the grace period).
-    shared.draining.store(true, Ordering::Relaxed);
-    let grace = Duration::from_secs_f64(shared.config.shutdown_grace_s);
-    let t_drain = Instant::now();
-    tracing::info!(in_flight = shared.in_flight_total(), "shutting down: finishing the requests in flight");
-    loop {
-        dispatch(&shared, &ep, startup_ns);
-        if shared.in_flight_total() == 0 || t_drain.elapsed() > grace {
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(1));
-    }
-    // Whatever is still queued after the grace period is answered, not dropped.
-    let leftover: Vec<Job> = lock(&shared.queue).drain(..).collect();
-    for job in leftover {
-        let s = || Status::new(StatusCode::Unavailable, "the daemon shut down before this request was worked on");
-        match job {
-            Job::Register { req, meta } => {
-                shared.release(Method::Register, meta.client);
-                shared.answer(Method::Register, &req, s(), None, meta.received, 0);
-            }
-            Job::Grasp { req, meta } => {
-                shared.release(Method::Grasp, meta.client);
-                shared.answer(Method::Grasp, &req, s(), None, meta.received, 0);
-            }
-        }
-    }
     let abandoned = shared.in_flight_total();
     shared.stop_workers.store(true, Ordering::Release);
     background_stop.store(true, Ordering::Release);
-    shared.queue_cv.notify_all();
     if abandoned == 0 {
         for h in handles {
             let _ = h.join();
@@ -800,7 +819,11 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
     let requests = lock(&shared.stats).methods.iter().map(|m| m.requests).sum();
     let report = ServeReport { startup_ms: startup_ns as f64 * 1e-6, uptime_s: shared.started.elapsed().as_secs_f64(), requests, abandoned };
     tracing::info!(requests, uptime_s = report.uptime_s, "stopped");
-    result.map(|_| report)
+    let fatal = lock(&shared.fatal).take();
+    match fatal {
+        Some(e) => Err(ServeError::Ipc(e)),
+        None => Ok(report),
+    }
 }
 
 fn shared_engine_handle(shared: &Arc<Shared>) -> super::uds::EngineHandle {
@@ -905,69 +928,116 @@ fn termination_requested() -> bool {
     iceoryx2_bb_posix::signal::SignalHandler::termination_requested()
 }
 
-/// The serving loop; returns on SIGINT/SIGTERM.
-fn run_loop(shared: &Shared, ep: &Endpoints, startup_ns: u64) -> Result<(), ServeError> {
-    let housekeeping = Duration::from_millis(shared.config.housekeeping_ms);
-    let metrics = (shared.config.metrics_interval_s > 0.0).then(|| Duration::from_secs_f64(shared.config.metrics_interval_s));
-    let mut last_house = Instant::now();
-    let mut last_metrics = Instant::now();
-    let mut house = |force: bool| {
-        if !force && last_house.elapsed() < housekeeping {
+/// Every serving thread: run the engine job it holds, else lead (receive) or
+/// wait to lead. Returns when the daemon stops.
+fn thread_main(shared: &Shared, ep: &Endpoints) {
+    let waitset = match shared.config.waiting {
+        Waiting::Event => match WaitSetBuilder::new().signal_handling_mode(SignalHandlingMode::HandleTerminationRequests).create::<Ipc>() {
+            Ok(ws) => Some(ws),
+            Err(e) => return shared.fail(format!("waitset: {e:?}")),
+        },
+        Waiting::Poll => None,
+    };
+    let mut guards = Vec::new();
+    let mut tick = None;
+    if let Some(ws) = &waitset {
+        for l in ep.listeners() {
+            match ws.attach_notification(l) {
+                Ok(g) => guards.push(g),
+                Err(e) => return shared.fail(format!("waitset attach: {e:?}")),
+            }
+        }
+        match ws.attach_interval(Duration::from_millis(shared.config.housekeeping_ms)) {
+            Ok(g) => tick = Some(g),
+            Err(e) => return shared.fail(format!("waitset interval: {e:?}")),
+        }
+    }
+    let _attached = (&guards, &tick);
+    loop {
+        if shared.stop_workers.load(Ordering::Acquire) {
             return;
         }
-        last_house = Instant::now();
-        lock(&shared.notifiers).evict_idle(Duration::from_secs(30));
-        if let Some(every) = metrics {
-            if last_metrics.elapsed() >= every {
-                last_metrics = Instant::now();
-                tracing::info!(target: "graspd::metrics", "{}", stats_json(&shared.stats(ep.clients_connected())));
+        let job = {
+            let mut st = lock(&shared.leadership);
+            lead(shared, ep, waitset.as_ref(), &mut st)
+        };
+        let Some(job) = job else { return };
+        // Leadership is released: another thread receives while this one works.
+        shared.run_job(job);
+        shared.unreserve();
+        while let Some(job) = shared.pop_reserved() {
+            shared.run_job(job);
+            shared.unreserve();
+        }
+    }
+}
+
+/// Receives until a Register/Grasp is taken (returned, to run) or the daemon stops (None).
+fn lead(shared: &Shared, ep: &Endpoints, waitset: Option<&WaitSet<Ipc>>, st: &mut LeaderState) -> Option<Job> {
+    let housekeeping = Duration::from_millis(shared.config.housekeeping_ms);
+    let metrics = (shared.config.metrics_interval_s > 0.0).then(|| Duration::from_secs_f64(shared.config.metrics_interval_s));
+    let mut last_signal_check = Instant::now();
+    loop {
+        if shared.stop_workers.load(Ordering::Acquire) {
+            return None;
+        }
+        if waitset.is_some() {
+            // Consume the wake-ups now: requests are all received below.
+            for l in ep.listeners() {
+                let _ = l.try_wait(|_| {});
             }
         }
-    };
-    match shared.config.waiting {
-        Waiting::Event => {
-            let waitset = ipc!(WaitSetBuilder::new().signal_handling_mode(SignalHandlingMode::HandleTerminationRequests).create::<Ipc>(), "waitset")?;
-            let mut guards = Vec::new();
-            for l in ep.listeners() {
-                guards.push(ipc!(waitset.attach_notification(l), "waitset attach")?);
-            }
-            let _tick = ipc!(waitset.attach_interval(housekeeping), "waitset interval")?;
-            loop {
-                // Requests sent before the first wait, or whose notification raced: drain first.
-                for l in ep.listeners() {
-                    let _ = l.try_wait(|_| {});
+        let (handled, job) = dispatch(shared, ep, true);
+        if job.is_some() {
+            return job;
+        }
+        if let Some(job) = shared.pop_reserved() {
+            return Some(job);
+        }
+        if shared.draining.load(Ordering::Relaxed) && shared.drained() {
+            shared.stop_workers.store(true, Ordering::Release);
+            return None;
+        }
+        if st.last_house.elapsed() >= housekeeping {
+            st.last_house = Instant::now();
+            lock(&shared.notifiers).evict_idle(Duration::from_secs(30));
+            if let Some(every) = metrics {
+                if st.last_metrics.elapsed() >= every {
+                    st.last_metrics = Instant::now();
+                    tracing::info!(target: "graspd::metrics", "{}", stats_json(&shared.stats(ep.clients_connected())));
                 }
-                dispatch(shared, ep, startup_ns);
-                house(false);
+            }
+        }
+        if handled > 0 {
+            continue;
+        }
+        match waitset {
+            _ if shared.draining.load(Ordering::Relaxed) => std::thread::sleep(Duration::from_millis(1)),
+            Some(ws) => {
                 // A signal that arrived while we were busy is not seen by the wait below.
                 if termination_requested() {
-                    return Ok(());
+                    shared.begin_drain();
+                    continue;
                 }
-                match waitset.wait_and_process_once(|_| CallbackProgression::Continue) {
-                    Ok(WaitSetRunResult::TerminationRequest) | Ok(WaitSetRunResult::Interrupt) => return Ok(()),
+                match ws.wait_and_process_once(|_| CallbackProgression::Continue) {
+                    Ok(WaitSetRunResult::TerminationRequest) | Ok(WaitSetRunResult::Interrupt) => shared.begin_drain(),
                     Ok(_) => {}
                     Err(e) => {
-                        // A signal can surface as an error of the underlying wait.
                         if termination_requested() {
-                            return Ok(());
+                            shared.begin_drain();
+                        } else {
+                            shared.fail(format!("waitset: {e:?}"));
                         }
-                        return Err(ServeError::Ipc(format!("waitset: {e:?}")));
                     }
                 }
             }
-        }
-        Waiting::Poll => {
-            let mut last_signal_check = Instant::now();
-            loop {
-                if dispatch(shared, ep, startup_ns) == 0 {
-                    std::hint::spin_loop();
-                }
+            None => {
+                std::hint::spin_loop();
                 if last_signal_check.elapsed() >= Duration::from_millis(2) {
                     last_signal_check = Instant::now();
                     if termination_requested() {
-                        return Ok(());
+                        shared.begin_drain();
                     }
-                    house(false);
                 }
             }
         }
