@@ -846,3 +846,32 @@ fn grasp(g: &proto::GraspResponse, category: &str, frame: &str) -> Grasp {
         warnings,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_client_can_move_between_threads() {
+        fn send<T: Send>() {}
+        send::<Client>();
+        send::<Error>();
+    }
+
+    #[test]
+    fn no_daemon_is_unavailable_not_a_hang() {
+        let opts = ClientOptions { prefix: format!("graspd_no_daemon_{}", std::process::id()), ..ClientOptions::default() };
+        let e = Client::connect(opts).err().expect("no daemon");
+        assert_eq!(e.code, StatusCode::Unavailable, "{e}");
+    }
+
+    #[test]
+    fn long_category_names_are_sent_as_invalid_bytes_not_truncated() {
+        let mut h = RequestHeader::zeroed();
+        apply_cloud_options(&mut h, &"x".repeat(40), &CloudOptions::default());
+        assert!(proto::name_to_str(&h.category).is_err());
+        apply_cloud_options(&mut h, "mug", &CloudOptions::default());
+        assert_eq!(proto::name_to_str(&h.category).unwrap(), "mug");
+        assert_eq!(h.up_in_cloud, [0.0, 0.0, 1.0]);
+    }
+}

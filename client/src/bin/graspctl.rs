@@ -54,6 +54,26 @@ enum Command {
     Grasp(CloudArgs),
     /// Round-trip latency of Register over shared memory, and over a Unix socket as a baseline.
     Bench(BenchArgs),
+    /// Many clients calling in a loop; reports errors and whether the daemon's memory stays flat.
+    Soak(SoakArgs),
+}
+
+#[derive(clap::Args)]
+struct SoakArgs {
+    #[arg(long, default_value_t = 8)]
+    clients: usize,
+    #[arg(long, default_value_t = 300)]
+    seconds: u64,
+    #[arg(long, default_value_t = 20_000)]
+    points: usize,
+    /// grasp (when the daemon serves it) or register.
+    #[arg(long, default_value = "register")]
+    method: String,
+    #[arg(long, default_value = "mug")]
+    category: String,
+    /// Seconds between samples of the daemon's RSS and of /dev/shm.
+    #[arg(long, default_value_t = 10)]
+    every: u64,
 }
 
 #[derive(clap::Args)]
@@ -256,6 +276,7 @@ fn run(cli: &Cli) -> Result<(), Failure> {
             });
         }
         Command::Bench(b) => bench(cli, b, opts)?,
+        Command::Soak(a) => soak(cli, a, opts)?,
     }
     Ok(())
 }
@@ -455,4 +476,93 @@ fn bench_uds(path: &std::path::Path, b: &BenchArgs, cloud: &[[f32; 3]]) -> Resul
         }
     }
     Ok(out)
+}
+
+/// Bytes of iceoryx2 objects in /dev/shm, and their count.
+fn shm_usage() -> (u64, usize) {
+    let Ok(dir) = std::fs::read_dir("/dev/shm") else { return (0, 0) };
+    dir.flatten()
+        .filter(|e| e.file_name().to_string_lossy().starts_with("iox2_"))
+        .filter_map(|e| e.metadata().ok())
+        .fold((0, 0), |(b, n), m| (b + m.len(), n + 1))
+}
+
+fn soak(cli: &Cli, a: &SoakArgs, opts: ClientOptions) -> Result<(), Failure> {
+    use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+    use std::sync::Arc;
+    let grasp = match a.method.as_str() {
+        "grasp" => true,
+        "register" => false,
+        m => return Err(format!("--method {m}: grasp or register").into()),
+    };
+    let cloud = Arc::new(synthetic_mug_view(a.points));
+    let stop = Arc::new(AtomicBool::new(false));
+    let (ok, errors) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
+    let first_error = Arc::new(std::sync::Mutex::new(None::<String>));
+    let mut monitor = Client::connect(opts.clone())?;
+    let timeout = Duration::from_millis(cli.timeout_ms);
+    let threads: Vec<_> = (0..a.clients)
+        .map(|_| {
+            let (opts, cloud, stop, ok, errors, first_error, category) =
+                (opts.clone(), cloud.clone(), stop.clone(), ok.clone(), errors.clone(), first_error.clone(), a.category.clone());
+            std::thread::spawn(move || {
+                let mut c = match Client::connect(ClientOptions { initial_max_points: cloud.len(), ..opts }) {
+                    Ok(c) => c,
+                    Err(e) => {
+                        errors.fetch_add(1, Ordering::Relaxed);
+                        first_error.lock().unwrap().get_or_insert(e.to_string());
+                        return;
+                    }
+                };
+                while !stop.load(Ordering::Relaxed) {
+                    let r = if grasp { c.grasp(&category, &cloud, timeout).map(|_| ()) } else { c.register(&category, &cloud, timeout).map(|_| ()) };
+                    match r {
+                        Ok(()) => ok.fetch_add(1, Ordering::Relaxed),
+                        Err(e) => {
+                            first_error.lock().unwrap().get_or_insert(e.to_string());
+                            errors.fetch_add(1, Ordering::Relaxed)
+                        }
+                    };
+                }
+            })
+        })
+        .collect();
+    let t0 = Instant::now();
+    let mut samples = Vec::new();
+    let sample = |monitor: &mut Client, t: f64| -> Result<serde_json::Value, Failure> {
+        let s = monitor.stats()?;
+        let (shm_bytes, shm_objects) = shm_usage();
+        Ok(serde_json::json!({"t_s": t, "rss_bytes": s.rss_bytes, "shm_bytes": shm_bytes, "shm_objects": shm_objects,
+            "ok": ok.load(Ordering::Relaxed), "errors": errors.load(Ordering::Relaxed), "clients_connected": s.clients_connected}))
+    };
+    while t0.elapsed() < Duration::from_secs(a.seconds) {
+        std::thread::sleep(Duration::from_secs(a.every.max(1)).min(Duration::from_secs(a.seconds).saturating_sub(t0.elapsed())));
+        let v = sample(&mut monitor, t0.elapsed().as_secs_f64())?;
+        if !cli.json {
+            println!("{v}");
+        }
+        samples.push(v);
+    }
+    stop.store(true, Ordering::Relaxed);
+    for t in threads {
+        let _ = t.join();
+    }
+    let after = sample(&mut monitor, t0.elapsed().as_secs_f64())?;
+    // Flatness: the last sample against the first one (after warm-up).
+    let get = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap_or(0.0);
+    let (first, last) = (samples.first().cloned().unwrap_or(after.clone()), samples.last().cloned().unwrap_or(after.clone()));
+    let v = serde_json::json!({
+        "clients": a.clients, "seconds": a.seconds, "points": a.points, "method": a.method,
+        "requests_ok": ok.load(Ordering::Relaxed), "errors": errors.load(Ordering::Relaxed),
+        "first_error": first_error.lock().unwrap().clone(),
+        "rss_bytes": {"first": get(&first, "rss_bytes"), "last": get(&last, "rss_bytes"), "max": samples.iter().map(|s| get(s, "rss_bytes")).fold(0.0, f64::max)},
+        "shm_bytes": {"first": get(&first, "shm_bytes"), "last": get(&last, "shm_bytes"), "after_clients_left": get(&after, "shm_bytes")},
+        "shm_objects": {"first": get(&first, "shm_objects"), "last": get(&last, "shm_objects"), "after_clients_left": get(&after, "shm_objects")},
+        "samples": samples,
+    });
+    print(cli.json, &v, || println!("{}", serde_json::to_string_pretty(&v).unwrap_or_default()));
+    if errors.load(Ordering::Relaxed) > 0 {
+        return Err(format!("{} errors during the soak", errors.load(Ordering::Relaxed)).into());
+    }
+    Ok(())
 }
