@@ -32,13 +32,18 @@ pub struct TransferEvalOptions {
     pub scale_jitter: f64,
     /// Lay the tool on its side (rotated 90° about its x axis) instead of its natural rest pose.
     pub on_side: bool,
+    /// Register samples of the whole surface instead of a camera view (a
+    /// diagnostic: separates the shape space's error from the partial view's).
+    pub full_surface: bool,
     pub seed: u64,
     pub register: RegisterOptions,
+    /// Tell the registration where the camera is (the known viewpoint of a real set-up).
+    pub known_viewpoint: bool,
 }
 
 impl Default for TransferEvalOptions {
     fn default() -> Self {
-        Self { views: 8, noise: DepthNoise::default(), outliers: 0.0, scale_jitter: 0.0, on_side: false, seed: 7, register: RegisterOptions::default() }
+        Self { views: 8, noise: DepthNoise::default(), outliers: 0.0, scale_jitter: 0.0, on_side: false, full_surface: false, seed: 7, register: RegisterOptions::default(), known_viewpoint: true }
     }
 }
 
@@ -142,7 +147,11 @@ fn trial(registrar: &Registrar, inst: &Instance, truth_surface: &[P3], view: usi
     let intrinsics = Intrinsics::default();
     let cam_pose = standard_view(view, opts.views, centre, mesh.diagonal(), intrinsics).ok()?;
     let cam = DepthCamera { intrinsics, world_from_camera: cam_pose, noise: opts.noise };
-    let mut cloud = cam.capture(&scene, rng.random()).ok()?.points_world;
+    let mut cloud = if opts.full_surface {
+        sample_points(&mesh, 3000, rng.random()).ok()?.into_iter().map(|p| world_from_tool * p).collect()
+    } else {
+        cam.capture(&scene, rng.random()).ok()?.points_world
+    };
     if cloud.len() < 50 {
         return None;
     }
@@ -150,13 +159,15 @@ fn trial(registrar: &Registrar, inst: &Instance, truth_surface: &[P3], view: usi
 
     // Ours.
     let t0 = Instant::now();
-    let reg = registrar.register(&cloud, &RegisterOptions { seed: rng.random(), ..opts.register }).ok()?;
+    let t = cam_pose.translation.vector;
+    let viewpoint = (opts.known_viewpoint && !opts.full_surface).then_some([t.x, t.y, t.z]);
+    let reg = registrar.register(&cloud, &RegisterOptions { seed: rng.random(), viewpoint, ..opts.register }).ok()?;
     let fit_ms = t0.elapsed().as_secs_f64() * 1e3;
     let ours_kp: Vec<P3> = reg.keypoints.iter().map(|k| k.position).collect();
     let ours_shape = cpd::to_p3(&registrar.completed_shape(&reg));
 
     // Baseline 1: the undeformed canonical, pose fitted by the same machinery.
-    let canon = registrar.register(&cloud, &RegisterOptions { seed: rng.random(), fit_latent: false, ..opts.register }).ok()?;
+    let canon = registrar.register(&cloud, &RegisterOptions { seed: rng.random(), fit_latent: false, viewpoint, ..opts.register }).ok()?;
     let canon_kp: Vec<P3> = canon.keypoints.iter().map(|k| k.position).collect();
     let canon_shape = cpd::to_p3(&registrar.completed_shape(&canon));
 

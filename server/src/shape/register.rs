@@ -45,6 +45,10 @@ pub enum RegisterError {
 pub struct RegisterOptions {
     /// The world's up direction in the cloud's frame, if known (a table prior).
     pub up: Option<[f64; 3]>,
+    /// The camera's origin in the cloud's frame, if known (the origin for a
+    /// cloud in the camera frame). Model points facing away from it get a
+    /// small mixing weight: they cannot have produced an observation.
+    pub viewpoint: Option<[f64; 3]>,
     /// Estimate a uniform scale on top of the latent shape.
     pub estimate_scale: bool,
     /// Fit the latent shape (false: the undeformed mean shape, pose only).
@@ -80,6 +84,7 @@ impl Default for RegisterOptions {
     fn default() -> Self {
         Self {
             up: Some([0.0, 0.0, 1.0]),
+            viewpoint: None,
             estimate_scale: true,
             fit_latent: true,
             scale_range: (0.6, 1.6),
@@ -146,6 +151,10 @@ pub struct StageTimes {
 
 /// The model point sets used by a fit, each affine in the latent.
 struct Models {
+    /// Canonical outward normals of each level's points (normalised frame = canonical axes).
+    coarse_normals: Vec<P3>,
+    race_normals: Vec<P3>,
+    fine_normals: Vec<P3>,
     coarse: LinearModel,
     /// Middle resolution, for the race between the surviving hypotheses.
     race: LinearModel,
@@ -170,7 +179,17 @@ impl Models {
         let fine_idx = farthest_points(&canonical, 400);
         let race_idx = farthest_points(&canonical, 200);
         let coarse_idx = farthest_points(&canonical, 120);
-        Self { coarse: surface.select(&coarse_idx), race: surface.select(&race_idx), fine: surface.select(&fine_idx), surface, keypoints: model(&kp) }
+        let normals = |idx: &[usize]| idx.iter().map(|&i| space.surface_normals[i]).collect();
+        Self {
+            coarse_normals: normals(&coarse_idx),
+            race_normals: normals(&race_idx),
+            fine_normals: normals(&fine_idx),
+            coarse: surface.select(&coarse_idx),
+            race: surface.select(&race_idx),
+            fine: surface.select(&fine_idx),
+            surface,
+            keypoints: model(&kp),
+        }
     }
 }
 
@@ -202,7 +221,10 @@ impl Registrar {
         let race_x = subsample(&fine_x, opts.race_points, &mut rng);
         let coarse_x = subsample(&race_x, opts.coarse_points, &mut rng);
         let models = if opts.fit_latent { &self.deformable } else { &self.rigid };
-        let coarse_model = models.coarse.select(&(0..opts.coarse_model_points.min(models.coarse.len())).collect::<Vec<_>>());
+        let coarse_n = opts.coarse_model_points.min(models.coarse.len());
+        let coarse_model = models.coarse.select(&(0..coarse_n).collect::<Vec<_>>());
+        let coarse_normals = &models.coarse_normals[..coarse_n];
+        let viewpoint = opts.viewpoint.map(Vector3::from);
 
         let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
         let mut stage = StageTimes::default();
@@ -212,7 +234,8 @@ impl Registrar {
         let mut scored: Vec<(f64, Pose, f64)> = hyps
             .iter()
             .map(|&pose| {
-                let fit = em(&coarse_model, &coarse_x, pose, vec![0.0; 0], None, None, opts, opts.coarse_iters, &self.space.norm);
+                let view = View { normals: &coarse_normals, viewpoint };
+                let fit = em(&coarse_model, view, &coarse_x, pose, vec![0.0; 0], None, None, opts, opts.coarse_iters, &self.space.norm);
                 (fit.nll, fit.pose, fit.sigma2)
             })
             .collect();
@@ -231,7 +254,7 @@ impl Registrar {
         for (_, pose, sigma2) in scored.iter().take(opts.keep.max(1)) {
             // Start at the coarse fit's σ² (loosened for the finer model): re-annealing
             // from the data's spread would redo the coarse stage at full resolution.
-            let fit = em(&models.race, &race_x, *pose, vec![0.0; q], prior, Some(2.0 * sigma2), opts, opts.race_iters, &self.space.norm);
+            let fit = em(&models.race, View { normals: &models.race_normals, viewpoint }, &race_x, *pose, vec![0.0; q], prior, Some(2.0 * sigma2), opts, opts.race_iters, &self.space.norm);
             iterations += fit.iterations;
             if best.as_ref().is_none_or(|b| fit.nll < b.nll) {
                 best = Some(fit);
@@ -240,7 +263,7 @@ impl Registrar {
         let lead = best.expect("at least one hypothesis");
         stage.race = ms(t_stage);
         let t_stage = Instant::now();
-        let fit = em(&models.fine, &fine_x, lead.pose, lead.latent.clone(), prior, Some(lead.sigma2), opts, opts.fine_iters, &self.space.norm);
+        let fit = em(&models.fine, View { normals: &models.fine_normals, viewpoint }, &fine_x, lead.pose, lead.latent.clone(), prior, Some(lead.sigma2), opts, opts.fine_iters, &self.space.norm);
         iterations += fit.iterations;
         stage.refine = ms(t_stage);
         let t_stage = Instant::now();
@@ -382,10 +405,40 @@ struct Fit {
     iterations: usize,
 }
 
+/// What the camera can see: canonical normals of the model points and the
+/// viewpoint in the cloud's frame.
+#[derive(Clone, Copy)]
+struct View<'a> {
+    normals: &'a [P3],
+    viewpoint: Option<Vector3<f64>>,
+}
+
+/// Mixing weight of a model point facing away from the camera.
+const HIDDEN_WEIGHT: f64 = 0.1;
+
+impl View<'_> {
+    /// Mixing weights (mean 1) from back-face culling, or None without a viewpoint.
+    fn weights<'w>(&self, pose: &Pose, y_world: &[P3], out: &'w mut Vec<f64>) -> Option<&'w [f64]> {
+        let vp = self.viewpoint?;
+        if self.normals.len() != y_world.len() {
+            return None;
+        }
+        out.clear();
+        out.extend(self.normals.iter().zip(y_world).map(|(n, y)| {
+            let facing = (pose.r * Vector3::from(*n)).dot(&(vp - Vector3::from(*y)));
+            if facing > 0.0 { 1.0 } else { HIDDEN_WEIGHT }
+        }));
+        let mean = out.iter().sum::<f64>() / out.len().max(1) as f64;
+        out.iter_mut().for_each(|w| *w /= mean);
+        Some(out)
+    }
+}
+
 /// EM over pose (and latent, when `prior` is given).
 #[allow(clippy::too_many_arguments)]
 fn em(
     model: &LinearModel,
+    view: View,
     x: &[P3],
     mut pose: Pose,
     mut latent: Vec<f64>,
@@ -406,9 +459,11 @@ fn em(
     let mut sigma2 = sigma2_init.unwrap_or_else(|| initial_sigma2(x, &y_world));
     let (smin, smax) = (opts.scale_range.0 * norm.scale, opts.scale_range.1 * norm.scale);
     let (mut prev, mut nll, mut it) = (f64::INFINITY, f64::INFINITY, 0);
+    let mut weights = Vec::new();
     while it < iters {
         it += 1;
-        estep.run(&y_world, sigma2, opts.outlier_weight, &mut post);
+        let w = view.weights(&pose, &y_world, &mut weights);
+        estep.run_weighted(&y_world, w, sigma2, opts.outlier_weight, &mut post);
         nll = post.neg_log_likelihood;
         if !(post.np > 1e-9) {
             break;

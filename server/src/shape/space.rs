@@ -11,14 +11,14 @@ use rayon::prelude::*;
 use super::cpd::{self, to_p3, EmOptions, NonRigidOptions, Normalization, RigidOptions};
 use super::estep::P3;
 use super::kernel::{gaussian, LowRankKernel};
-use crate::geometry::{sample_points, sample_points_even, TriMesh};
+use crate::geometry::{sample_points_even, TriMesh};
 use faer::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::time::Instant;
 
 /// Artefact format version; bump on any change of the stored fields' meaning.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 const MAGIC: &[u8; 8] = b"GRSPSPC\0";
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -47,6 +47,8 @@ pub struct ShapeSpace {
     pub explained_variance: Vec<f64>,
     /// Dense canonical surface samples (canonical frame, metres): the shape completed by a fit.
     pub surface: Vec<P3>,
+    /// Outward unit normals of `surface` (for visibility from a viewpoint).
+    pub surface_normals: Vec<P3>,
     /// Semantic keypoints of the canonical instance (canonical frame).
     pub keypoints: Vec<NamedPoint>,
     /// Names of the training instances, in the order of `train_latents`.
@@ -142,9 +144,11 @@ impl ShapeSpace {
             sample_points_even(m, n, seed).map(|p| to_p3(&p)).map_err(|source| SpaceError::Sample { what: what.to_string(), source })
         };
         let c = sample(canonical, opts.centres, opts.seed, "canonical")?;
-        let surface = sample_points(canonical, opts.surface_points, opts.seed + 1)
-            .map(|p| to_p3(&p))
+        let surface_samples = crate::geometry::SurfaceSampler::new(canonical)
+            .and_then(|s| s.sample(opts.surface_points, opts.seed + 1))
             .map_err(|source| SpaceError::Sample { what: "canonical surface".into(), source })?;
+        let surface: Vec<P3> = surface_samples.iter().map(|s| [s.position.x, s.position.y, s.position.z]).collect();
+        let surface_normals: Vec<P3> = surface_samples.iter().map(|s| [s.normal.x, s.normal.y, s.normal.z]).collect();
         let norm = Normalization::of(&c);
         let y0: Vec<P3> = c.iter().map(|p| norm.forward(p)).collect();
         let kernel = LowRankKernel::new(&y0, opts.cpd.beta, opts.cpd.max_rank, opts.cpd.rank_tol, opts.seed);
@@ -194,6 +198,7 @@ impl ShapeSpace {
             variances,
             explained_variance: explained.clone(),
             surface,
+            surface_normals,
             keypoints: canonical_keypoints,
             instances: training.iter().map(|(n, _)| n.clone()).collect(),
             train_latents,
@@ -305,6 +310,9 @@ impl ShapeSpace {
         let m3 = self.centres.len() * 3;
         if self.centres.is_empty() || self.mean.len() != m3 || self.modes.iter().any(|md| md.len() != m3) {
             return Err("inconsistent sizes of centres, mean and modes".into());
+        }
+        if self.surface_normals.len() != self.surface.len() {
+            return Err("surface normals do not match the surface samples".into());
         }
         if self.variances.len() != self.modes.len() || !(self.beta > 0.0) || !(self.norm.scale > 0.0) {
             return Err("inconsistent variances, beta or normalisation".into());
