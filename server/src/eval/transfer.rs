@@ -73,6 +73,9 @@ pub struct SplitReport {
     pub confident_fraction: f64,
     /// Angle between the estimated and the true tool orientation (ours).
     pub rotation_error_deg: Percentiles,
+    /// Share of views flagged `ambiguous_pose`, and the keypoint error over the others.
+    pub ambiguous_fraction: f64,
+    pub unambiguous_keypoint_error_mm: Percentiles,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -88,6 +91,7 @@ struct Trial {
     chamfer: [f64; 3],
     fit_ms: f64,
     confident: bool,
+    ambiguous: bool,
     rotation_error_deg: f64,
 }
 
@@ -120,6 +124,8 @@ pub fn evaluate(registrar: &Registrar, instances: &[&Instance], split: Split, op
         fit_ms: FitTimes { p50: times.0, p99: times.1, max: times.2 },
         confident_fraction: trials.iter().filter(|t| t.confident).count() as f64 / trials.len().max(1) as f64,
         rotation_error_deg: percentiles(trials.iter().map(|t| t.rotation_error_deg).collect()),
+        ambiguous_fraction: trials.iter().filter(|t| t.ambiguous).count() as f64 / trials.len().max(1) as f64,
+        unambiguous_keypoint_error_mm: percentiles(trials.iter().filter(|t| !t.ambiguous).flat_map(|t| t.kp[0].iter().copied()).collect()),
     }
 }
 
@@ -192,14 +198,15 @@ fn trial(registrar: &Registrar, inst: &Instance, truth_surface: &[P3], view: usi
         chamfer: [chamfer_mm(&ours_shape, &truth_world), chamfer_mm(&canon_shape, &truth_world), chamfer_mm(&cpd_shape, &truth_world)],
         fit_ms,
         confident: reg.fit.confident,
+        ambiguous: reg.fit.ambiguous_pose,
         rotation_error_deg,
     })
     .inspect(|t| {
         if std::env::var_os("GRASPD_EVAL_TRACE").is_some() {
             let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
             eprintln!(
-                "{} view {view}: {} pts, rot err {:.1}°, scale {:.3} (true {scale:.3}), inliers {:.2}, kp mean ours {:.1} canonical {:.1} cpd {:.1} mm, {:.1} ms",
-                inst.name, t.points, t.rotation_error_deg, reg.scale, reg.fit.inlier_fraction, mean(&t.kp[0]), mean(&t.kp[1]), mean(&t.kp[2]), t.fit_ms
+                "{} view {view}: {} pts, ambiguous {}, rot err {:.1}°, scale {:.3} (true {scale:.3}), inliers {:.2}, kp mean ours {:.1} canonical {:.1} cpd {:.1} mm, {:.1} ms",
+                inst.name, t.points, t.ambiguous, t.rotation_error_deg, reg.scale, reg.fit.inlier_fraction, mean(&t.kp[0]), mean(&t.kp[1]), mean(&t.kp[2]), t.fit_ms
             );
             eprintln!("   ours per keypoint {:?}  canonical {:?}", t.kp[0].iter().map(|x| x.round()).collect::<Vec<_>>(), t.kp[1].iter().map(|x| x.round()).collect::<Vec<_>>());
         }

@@ -17,6 +17,7 @@
 
 use super::cpd::{weighted_similarity, Normalization};
 use super::estep::{dist2, initial_sigma2, EStep, Posteriors, P3};
+use super::freespace::FreeSpace;
 use super::space::{LinearModel, NamedPoint, ShapeSpace};
 use faer::prelude::*;
 use faer::Side;
@@ -72,6 +73,8 @@ pub struct RegisterOptions {
     pub fine_iters: usize,
     /// EM stops when the relative change of the negative log-likelihood falls below this.
     pub tol: f64,
+    /// Yaw hypotheses of the upright tool when `up` is known.
+    pub yaws: usize,
     /// Hypotheses kept from the coarse stage for the race at full resolution.
     pub keep: usize,
     /// Iterations of each hypothesis in that race, and the observed points it uses.
@@ -97,6 +100,7 @@ impl Default for RegisterOptions {
             fine_points: 400,
             fine_iters: 40,
             tol: 1e-7,
+            yaws: 6,
             keep: 4,
             race_iters: 10,
             race_points: 200,
@@ -119,6 +123,10 @@ pub struct FitQuality {
     pub inlier_mm: f64,
     /// false when the cloud is not explained by this category (another tool, a table, noise).
     pub confident: bool,
+    /// Another pose, at least 30° away, explains the view almost as well (a
+    /// mug whose handle is hidden): the orientation is not determined by this
+    /// view; take another.
+    pub ambiguous_pose: bool,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -246,7 +254,9 @@ impl Registrar {
         stage.coarse = ms(t_stage);
         let t_stage = Instant::now();
         let prior = opts.fit_latent.then_some(self.space.variances.as_slice());
-        let mut best: Option<Fit> = None;
+        let free_space = viewpoint.and_then(|vp| FreeSpace::new(&subsample(&all, 4000, &mut rng), vp, FREE_SPACE_MARGIN_M));
+        let mut best: Option<(f64, Fit)> = None;
+        let mut raced: Vec<(f64, Matrix3<f64>)> = Vec::new();
         let mut iterations = 0;
         // The survivors race a few iterations at full resolution (the coarse
         // level cannot see a mug's handle well enough to settle its yaw); the
@@ -254,20 +264,34 @@ impl Registrar {
         for (_, pose, sigma2) in scored.iter().take(opts.keep.max(1)) {
             // Start at the coarse fit's σ² (loosened for the finer model): re-annealing
             // from the data's spread would redo the coarse stage at full resolution.
-            let fit = em(&models.race, View { normals: &models.race_normals, viewpoint }, &race_x, *pose, vec![0.0; q], prior, Some(2.0 * sigma2), opts, opts.race_iters, &self.space.norm);
+            // Poses race on the mean shape: a free latent lets a wrong pose deform
+            // into a fit as good as the right one's (measured: most gross failures).
+            let fit = em(&models.race, View { normals: &models.race_normals, viewpoint }, &race_x, *pose, vec![0.0; q], None, Some(2.0 * sigma2), opts, opts.race_iters, &self.space.norm);
             iterations += fit.iterations;
-            if best.as_ref().is_none_or(|b| fit.nll < b.nll) {
-                best = Some(fit);
+            // Likelihood per observed point, penalised by the share of the model the view contradicts.
+            let violation = free_space.as_ref().map_or(0.0, |fs| {
+                let y: Vec<P3> = models.race.evaluate(&fit.latent).iter().map(|y| fit.pose.apply(y)).collect();
+                fs.violation_fraction(&y, models.race_normals.iter().map(|n| fit.pose.r * Vector3::from(*n)))
+            });
+            let score = fit.nll / race_x.len() as f64 + FREE_SPACE_PENALTY * violation;
+            raced.push((score, fit.pose.r));
+            if best.as_ref().is_none_or(|b| score < b.0) {
+                best = Some((score, fit));
             }
         }
-        let lead = best.expect("at least one hypothesis");
+        let (lead_score, lead) = best.expect("at least one hypothesis");
+        let ambiguous_pose = raced.iter().any(|(sc, r)| {
+            let angle = Rotation3::from_matrix_unchecked(lead.pose.r.transpose() * r).angle();
+            angle > 30f64.to_radians() && *sc - lead_score < AMBIGUITY_MARGIN
+        });
         stage.race = ms(t_stage);
         let t_stage = Instant::now();
         let fit = em(&models.fine, View { normals: &models.fine_normals, viewpoint }, &fine_x, lead.pose, lead.latent.clone(), prior, Some(lead.sigma2), opts, opts.fine_iters, &self.space.norm);
         iterations += fit.iterations;
         stage.refine = ms(t_stage);
         let t_stage = Instant::now();
-        let quality = self.quality(models, &fit, &fine_x);
+        let mut quality = self.quality(models, &fit, &fine_x);
+        quality.ambiguous_pose = ambiguous_pose;
         stage.quality = ms(t_stage);
         let keypoints = models
             .keypoints
@@ -338,11 +362,11 @@ impl Registrar {
         }
         match opts.up {
             Some(up) => {
-                // Upright at six yaws.
+                // Upright at `yaws` yaws.
                 let up = Vector3::from(up).try_normalize(1e-9).unwrap_or_else(Vector3::z);
                 let align = Rotation3::rotation_between(&Vector3::z(), &up).unwrap_or_else(|| Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI));
-                for k in 0..6 {
-                    let yaw = Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(up), k as f64 * std::f64::consts::TAU / 6.0);
+                for k in 0..opts.yaws {
+                    let yaw = Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(up), k as f64 * std::f64::consts::TAU / opts.yaws as f64);
                     rots.push(*(yaw * align).matrix());
                 }
             }
@@ -378,7 +402,7 @@ impl Registrar {
         }
         let inlier_fraction = n_in as f64 / x.len().max(1) as f64;
         let residual_mm = if n_in > 0 { (sum2 / n_in as f64).sqrt() * 1e3 } else { f64::INFINITY };
-        FitQuality { inlier_fraction, residual_mm, inlier_mm: inlier_m * 1e3, confident: inlier_fraction >= CONFIDENT_INLIER_FRACTION }
+        FitQuality { inlier_fraction, residual_mm, inlier_mm: inlier_m * 1e3, confident: inlier_fraction >= CONFIDENT_INLIER_FRACTION, ambiguous_pose: false }
     }
 }
 
@@ -412,6 +436,15 @@ struct View<'a> {
     normals: &'a [P3],
     viewpoint: Option<Vector3<f64>>,
 }
+
+/// Two raced poses whose scores (nats per observed point) differ by less than
+/// this explain the view equally well.
+const AMBIGUITY_MARGIN: f64 = 0.2;
+
+/// Noise forgiven by the free-space test, metres.
+const FREE_SPACE_MARGIN_M: f64 = 0.006;
+/// Score penalty (nats per observed point) for contradicting the whole visible model.
+const FREE_SPACE_PENALTY: f64 = 4.0;
 
 /// Mixing weight of a model point facing away from the camera.
 const HIDDEN_WEIGHT: f64 = 0.1;
