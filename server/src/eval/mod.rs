@@ -1,3 +1,4 @@
 //! Evaluations that print the figures the issues ask for.
 
+pub mod grasp;
 pub mod transfer;
