@@ -210,3 +210,21 @@ pub fn evaluate_grasps(
         per_instance: rows,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn statistics() {
+        let m = mean_std(&[1.0, 2.0, 3.0, 4.0]);
+        assert!((m.mean - 2.5).abs() < 1e-12 && (m.std - 1.25f64.sqrt()).abs() < 1e-12);
+        assert!(mean_std(&[]).mean.is_nan());
+        let v: Vec<f64> = (1..=100).map(f64::from).rev().collect();
+        assert_eq!(percentile(&v, 0.5), 50.0);
+        assert_eq!(percentile(&v, 0.99), 99.0);
+        assert_eq!(percentile(&v, 1.0), 100.0);
+        assert_eq!(percentile(&v, 0.0), 1.0);
+        assert!(percentile(&[], 0.5).is_nan());
+    }
+}
