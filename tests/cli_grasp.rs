@@ -276,3 +276,32 @@ fn eval_grasp_prints_table_one() {
     assert!(f(&v["penetration_mm"]["ours"]["max"]) <= 2.0, "{}", v["penetration_mm"]);
     assert!(f(&v["solve_ms"]["p50"]) > 0.0 && f(&v["solve_ms"]["p99"]) >= f(&v["solve_ms"]["p50"]));
 }
+
+#[test]
+fn hand_info_loads_another_hand_and_refuses_a_broken_one() {
+    let dir = tempfile::tempdir().unwrap();
+    // A two-finger gripper with a 2:1 mimic coupling and an offset.
+    let urdf = r#"<robot name="gripper">
+      <link name="base"/><link name="left"/><link name="right"/>
+      <joint name="left_joint" type="prismatic"><parent link="base"/><child link="left"/>
+        <origin xyz="0 0.02 0.05"/><axis xyz="0 1 0"/><limit lower="0" upper="0.04" effort="1" velocity="1"/></joint>
+      <joint name="right_joint" type="prismatic"><parent link="base"/><child link="right"/>
+        <origin xyz="0 -0.02 0.05"/><axis xyz="0 -1 0"/><limit lower="-0.01" upper="0.09" effort="1" velocity="1"/>
+        <mimic joint="left_joint" multiplier="2" offset="0.005"/></joint>
+    </robot>"#;
+    let kps = r#"{"keypoints": [{"name": "l", "link": "left", "offset": [0, 0, 0.01]},
+                                {"name": "r", "link": "right", "offset": [0, 0, 0.01]}],
+                  "palm_normal": [0, 0, 1]}"#;
+    let (u, k) = (dir.path().join("g.urdf"), dir.path().join("g.json"));
+    std::fs::write(&u, urdf).unwrap();
+    std::fs::write(&k, kps).unwrap();
+    let v = json(&["hand", "info", "--urdf", u.to_str().unwrap(), "--keypoints", k.to_str().unwrap(), "--json"]);
+    assert_eq!(v["name"], "gripper");
+    assert_eq!(v["actuated"].as_array().unwrap().len(), 1);
+    assert_eq!(f(&v["mimic"][0]["multiplier"]), 2.0);
+    assert_eq!(f(&v["mimic"][0]["offset"]), 0.005);
+    // A joint naming a link that is not there.
+    std::fs::write(&u, urdf.replace(r#"<child link="right"/>"#, r#"<child link="thumb"/>"#)).unwrap();
+    let e = fails(&["hand", "info", "--urdf", u.to_str().unwrap(), "--keypoints", k.to_str().unwrap()]);
+    assert!(e.contains("`thumb` is not defined"), "{e}");
+}
