@@ -6,11 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 fn graspd(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_graspd"))
-        .args(args)
-        .env("GRASPD_LOG", "warn")
-        .output()
-        .expect("graspd runs")
+    Command::new(env!("CARGO_BIN_EXE_graspd")).args(args).env("GRASPD_LOG", "warn").output().expect("graspd runs")
 }
 
 /// Runs graspd, expects success, parses stdout as JSON.
@@ -104,8 +100,12 @@ fn retarget_recovers_sampled_configurations() {
     let single = json(&["retarget", "--keypoints", &one, "--json"]);
     assert!(f(&single["residual_mm"]["max"]) < 1.0);
     let truth = &samples["sets"][0]["truth"]["actuated"];
-    let got: Vec<f64> =
-        info["actuated"].as_array().unwrap().iter().map(|a| f(&single["actuated"][a["name"].as_str().unwrap()])).collect();
+    let got: Vec<f64> = info["actuated"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| f(&single["actuated"][a["name"].as_str().unwrap()]))
+        .collect();
     for (g, t) in got.iter().zip(truth.as_array().unwrap()) {
         assert!((g - f(t)).abs() < 1e-3, "joint {g} vs {t}");
     }
@@ -173,7 +173,8 @@ fn demo_author_reproduces_the_bundled_demo_and_refuses_bad_poses() {
         .collect();
     let wrist = wrist.join(" ");
     let out = dir.path().join("drill.json");
-    let v = json(&["demo", "author", "--category", "drill", "--wrist", &wrist, "--out", out.to_str().unwrap(), "--json"]);
+    let v =
+        json(&["demo", "author", "--category", "drill", "--wrist", &wrist, "--out", out.to_str().unwrap(), "--json"]);
     assert_eq!(v["ok"], true, "{v}");
     assert_eq!(v["fingers"].as_array().unwrap().len(), 5);
     let authored: Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
@@ -185,7 +186,16 @@ fn demo_author_reproduces_the_bundled_demo_and_refuses_bad_poses() {
 
     // Far from the drill: no finger touches, nothing is written.
     let nowhere = dir.path().join("nowhere.json");
-    let e = fails(&["demo", "author", "--category", "drill", "--wrist", "0.5 0.5 0.5 0 0 0 1", "--out", nowhere.to_str().unwrap()]);
+    let e = fails(&[
+        "demo",
+        "author",
+        "--category",
+        "drill",
+        "--wrist",
+        "0.5 0.5 0.5 0 0 0 1",
+        "--out",
+        nowhere.to_str().unwrap(),
+    ]);
     assert!(e.contains("does not touch"), "{e}");
     assert!(!nowhere.exists());
     // Inside it: refused before closing.
@@ -231,13 +241,26 @@ fn grasp_from_a_partial_cloud() {
     let dir = tempfile::tempdir().unwrap();
     let cloud = dir.path().join("mug.ply");
     let mesh = repo().join("assets/tools/mug/mug_test_00.obj");
-    let c = graspd(&["cloud", "--mesh", mesh.to_str().unwrap(), "--view", "1", "--seed", "2", "--out", cloud.to_str().unwrap()]);
+    let c = graspd(&[
+        "cloud",
+        "--mesh",
+        mesh.to_str().unwrap(),
+        "--view",
+        "1",
+        "--seed",
+        "2",
+        "--out",
+        cloud.to_str().unwrap(),
+    ]);
     assert!(c.status.success(), "{}", String::from_utf8_lossy(&c.stderr));
     let v = json(&["grasp", "--category", "mug", "--cloud", cloud.to_str().unwrap(), "--json"]);
     println!(
         "grasp: distance {} cm (CG {}, WP {}), penetration {} mm, stages {}",
-        v["task_space_distance_cm"], v["baselines"]["cg"]["task_space_distance_cm"],
-        v["baselines"]["wp"]["task_space_distance_cm"], v["penetration_mm"], v["stage_ms"]
+        v["task_space_distance_cm"],
+        v["baselines"]["cg"]["task_space_distance_cm"],
+        v["baselines"]["wp"]["task_space_distance_cm"],
+        v["penetration_mm"],
+        v["stage_ms"]
     );
     assert!(!v["registration"]["latent"].as_array().unwrap().is_empty());
     assert_eq!(v["registration"]["pose"]["rotation_xyzw"].as_array().unwrap().len(), 4);

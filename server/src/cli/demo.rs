@@ -157,13 +157,17 @@ pub fn run(cmd: DemoCommand) -> CliResult {
             let wrist = parse_pose(&wrist)?;
             let collider = canonical_collider(category)?;
             let scene = Scene { tool: Some(&collider), table_height_world: (!no_table).then_some(0.0) };
-            let close_opts = CloseOptions {
-                closed: closed.as_deref().map(parse_numbers).transpose()?,
-                ..CloseOptions::default()
-            };
+            let close_opts =
+                CloseOptions { closed: closed.as_deref().map(parse_numbers).transpose()?, ..CloseOptions::default() };
             let closed = close_until_contact(&hand, &wrist, &scene, &close_opts)?;
-            let demo = Demonstration::new(&hand, &format!("{}/canonical", category.name()), &closed.grasp, &Isometry3::identity());
-            let check_opts = DemoCheckOptions { contact_mm, max_penetration_mm, free_fingers: free, ..Default::default() };
+            let demo = Demonstration::new(
+                &hand,
+                &format!("{}/canonical", category.name()),
+                &closed.grasp,
+                &Isometry3::identity(),
+            );
+            let check_opts =
+                DemoCheckOptions { contact_mm, max_penetration_mm, free_fingers: free, ..Default::default() };
             let keypoints = demo.keypoints(&hand)?;
             let check = check_demonstration(&hand, &closed.grasp, &keypoints, &scene, &check_opts)?;
             let path = out.unwrap_or_else(|| Demonstration::builtin_path(category));
@@ -215,7 +219,9 @@ pub fn run(cmd: DemoCommand) -> CliResult {
                 })?,
             };
             if demo.hand != hand.name() {
-                return Err(format!("the demonstration was made with hand `{}`, not `{}`", demo.hand, hand.name()).into());
+                return Err(
+                    format!("the demonstration was made with hand `{}`, not `{}`", demo.hand, hand.name()).into()
+                );
             }
             let grasp = demo.grasp_at(&hand, &Isometry3::identity())?;
             let keypoints = demo.keypoints(&hand)?;

@@ -10,7 +10,7 @@ use graspd::eval::grasp::{evaluate_grasps, percentile, GraspEvalOptions};
 use graspd::grasp::transfer::{solve_transferred, TransferredTool};
 use graspd::grasp::{Demonstration, Grasp, GraspSolver, GraspTargets, PoseFile, PreGraspOptions, Scene, SolveOptions};
 use graspd::hand::HandModel;
-use graspd::shape::{builtin, Registrar, RegisterOptions};
+use graspd::shape::{builtin, RegisterOptions, Registrar};
 use graspd::tools::{self, Category, Split};
 use nalgebra::Point3;
 use std::path::PathBuf;
@@ -268,9 +268,8 @@ pub fn run_retarget(a: RetargetArgs) -> CliResult {
 fn load_demo(path: Option<&PathBuf>, category: Category) -> Result<Demonstration, AnyError> {
     Ok(match path {
         Some(p) => Demonstration::load(p)?,
-        None => Demonstration::builtin(category).map_err(|e| {
-            format!("{e} (author one with `graspd demo author --category {}`)", category.name())
-        })?,
+        None => Demonstration::builtin(category)
+            .map_err(|e| format!("{e} (author one with `graspd demo author --category {}`)", category.name()))?,
     })
 }
 
@@ -425,11 +424,7 @@ pub fn run_eval(a: EvalGraspArgs) -> CliResult {
     let training: Vec<&tools::Instance> = family.iter().filter(|i| i.split == Split::Train).collect();
     let mut solve = SolveOptions { starts: a.starts.max(1), ..SolveOptions::default() };
     solve.penetration.enabled = !a.no_penetration;
-    let opts = GraspEvalOptions {
-        solve,
-        repeats: a.repeats,
-        table: !a.no_table,
-    };
+    let opts = GraspEvalOptions { solve, repeats: a.repeats, table: !a.no_table };
     let bar = progress_bar(training.len() as u64, "instances");
     let report = evaluate_grasps(&hand, &space, &demo, canonical, &training, &opts, || bar.inc(1))?;
     bar.finish_and_clear();

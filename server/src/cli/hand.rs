@@ -145,8 +145,14 @@ pub fn random_wrist(rng: &mut ChaCha8Rng, extent: f64) -> Isometry3<f64> {
     let (u1, u2, u3): (f64, f64, f64) = (rng.random(), rng.random(), rng.random());
     let tau = std::f64::consts::TAU;
     let (a, b) = ((1.0 - u1).sqrt(), u1.sqrt());
-    let q = nalgebra::Quaternion::new(b * (tau * u3).cos(), a * (tau * u2).sin(), a * (tau * u2).cos(), b * (tau * u3).sin());
-    let t = Vector3::new(rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>()).map(|v| (2.0 * v - 1.0) * extent);
+    let q = nalgebra::Quaternion::new(
+        b * (tau * u3).cos(),
+        a * (tau * u2).sin(),
+        a * (tau * u2).cos(),
+        b * (tau * u3).sin(),
+    );
+    let t =
+        Vector3::new(rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>()).map(|v| (2.0 * v - 1.0) * extent);
     Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_quaternion(q))
 }
 

@@ -151,7 +151,11 @@ pub fn evaluate_grasps(
     let mut rows = Vec::new();
     let mut times = Vec::new();
     for inst in training {
-        let k = space.instances.iter().position(|n| n == &inst.name).ok_or_else(|| GraspEvalError::NoLatent(inst.name.clone()))?;
+        let k = space
+            .instances
+            .iter()
+            .position(|n| n == &inst.name)
+            .ok_or_else(|| GraspEvalError::NoLatent(inst.name.clone()))?;
         let tool = TransferredTool::from_latent(space, &space.train_latents[k], &keypoints, &canonical.mesh)?;
         let table = opts.table.then(|| tool.lowest_z());
         let mut out = solve_transferred(&mut solver, demo, &tool, table, &PreGraspOptions::default())?;

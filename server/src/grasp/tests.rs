@@ -836,7 +836,8 @@ fn similarity_carries_points_and_frames() {
         translation: Vector3::new(0.1, -0.4, 0.2),
         scale: 1.25,
     };
-    let frame = Isometry3::from_parts(Translation3::new(0.05, 0.02, -0.03), UnitQuaternion::from_euler_angles(1.0, 0.1, 0.2));
+    let frame =
+        Isometry3::from_parts(Translation3::new(0.05, 0.02, -0.03), UnitQuaternion::from_euler_angles(1.0, 0.1, 0.2));
     let carried = s.carry(&frame);
     // The frame's origin moves as a point; its axes turn with the rotation.
     assert!((carried.translation.vector - s.apply(&Point3::from(frame.translation.vector)).coords).norm() < 1e-12);

@@ -30,7 +30,9 @@ use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use super::baselines::{baseline_wp, BaselineGrasp};
 use super::penetration::{Scene, ToolCollider};
 use super::pregrasp::{pregrasp, PreGrasp, PreGraspOptions};
-use super::{task_space_distance_cm as distance_cm, Demonstration, Grasp, GraspError, GraspSolver, GraspTargets, SolveReport};
+use super::{
+    task_space_distance_cm as distance_cm, Demonstration, Grasp, GraspError, GraspSolver, GraspTargets, SolveReport,
+};
 use crate::geometry::TriMesh;
 use crate::shape::{Registrar, Registration, ShapeSpace};
 
