@@ -53,6 +53,8 @@ pub enum EvalCommand {
         #[arg(long)]
         json: bool,
     },
+    /// Grasps on the training instances: the paper's Table I (ours, WP, CG).
+    Grasp(super::grasp::EvalGraspArgs),
 }
 
 pub fn run(cmd: EvalCommand) -> CliResult {
@@ -84,6 +86,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                 }
             }
         }
+        EvalCommand::Grasp(a) => return super::grasp::run_eval(a),
         EvalCommand::Transfer { category, views, noise_mm, outliers, scale_jitter, on_side, full_surface, unknown_viewpoint, seed, json } => {
             let category: Category = category.parse()?;
             let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
