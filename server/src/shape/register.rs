@@ -325,13 +325,12 @@ impl Registrar {
         self.models_of(reg).surface.evaluate(&reg.latent).iter().map(|y| Point3::from(pose.apply(y))).collect()
     }
 
-    /// Any canonical points (canonical frame, metres) moved onto the registered tool.
+    /// Any canonical points (canonical frame, metres), on the surface or off
+    /// it (a demonstration's hand keypoints), moved onto the registered tool.
     pub fn transfer(&self, reg: &Registration, canonical_points: &[P3]) -> Vec<P3> {
         let pose = self.pose_of(reg);
-        if reg.latent.is_empty() {
-            return canonical_points.iter().map(|z| pose.apply(&self.space.norm.forward(z))).collect();
-        }
-        self.space.linear_model(canonical_points).evaluate(&reg.latent).iter().map(|y| pose.apply(y)).collect()
+        let deformed = if reg.latent.is_empty() { canonical_points.to_vec() } else { self.space.deform_anchored(canonical_points, &reg.latent) };
+        deformed.iter().map(|z| pose.apply(&self.space.norm.forward(z))).collect()
     }
 
     /// A registration without latent (the `canonical` baseline) uses the undeformed models.
