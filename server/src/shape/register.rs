@@ -346,7 +346,9 @@ impl Registrar {
     }
 
     fn hypotheses(&self, x: &[P3], opts: &RegisterOptions) -> Vec<Pose> {
-        let (ax_o, mu_o) = principal_axes(x);
+        // Axes and centre of the view's core: stray points (segmentation
+        // leaks, flying pixels) would drag a plain centroid and tilt the axes.
+        let (ax_o, mu_o) = principal_axes(&trimmed_core(x));
         let s0 = self.space.norm.scale;
         let mut rots = Vec::new();
         // Principal axes of the view onto the canonical's (4 proper sign choices).
@@ -635,6 +637,22 @@ pub fn farthest_points(x: &[P3], n: usize) -> Vec<usize> {
         cur = best.1;
     }
     out
+}
+
+/// The points within 2.5× the median distance of the coordinate-wise median.
+fn trimmed_core(x: &[P3]) -> Vec<P3> {
+    if x.len() < 10 {
+        return x.to_vec();
+    }
+    let median = |mut v: Vec<f64>| {
+        let mid = v.len() / 2;
+        *v.select_nth_unstable_by(mid, f64::total_cmp).1
+    };
+    let m = [median(x.iter().map(|p| p[0]).collect()), median(x.iter().map(|p| p[1]).collect()), median(x.iter().map(|p| p[2]).collect())];
+    let d: Vec<f64> = x.iter().map(|p| dist2(p, &m).sqrt()).collect();
+    let limit = 2.5 * median(d.clone());
+    let core: Vec<P3> = x.iter().zip(&d).filter(|(_, &di)| di <= limit).map(|(p, _)| *p).collect();
+    if core.len() >= 10 { core } else { x.to_vec() }
 }
 
 /// Principal axes (columns, descending variance, right-handed) and centroid.
