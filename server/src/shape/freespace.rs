@@ -18,8 +18,11 @@ pub struct FreeSpace {
     origin_uv: [f64; 2],
     inv_cell: f64,
     dims: [usize; 2],
-    /// Farthest observed range per cell (0: nothing observed there).
-    max_range: Vec<f64>,
+    /// Nearest observed range per cell (∞: nothing observed there). The
+    /// nearest, not the farthest: a stray point behind the tool must not make
+    /// the true surface look "seen through"; only when everything the camera
+    /// saw in a direction lies behind a model point did it look past it.
+    min_range: Vec<f64>,
     margin: f64,
 }
 
@@ -56,10 +59,10 @@ impl FreeSpace {
         if dims[0] * dims[1] > 1 << 20 {
             return None;
         }
-        let mut fs = FreeSpace { viewpoint, axes, origin_uv, inv_cell: 1.0 / cell, dims, max_range: vec![0.0; dims[0] * dims[1]], margin };
+        let mut fs = FreeSpace { viewpoint, axes, origin_uv, inv_cell: 1.0 / cell, dims, min_range: vec![f64::INFINITY; dims[0] * dims[1]], margin };
         for (q, r) in uv.into_iter().flatten() {
             if let Some(c) = fs.cell(q) {
-                fs.max_range[c] = fs.max_range[c].max(r);
+                fs.min_range[c] = fs.min_range[c].min(r);
             }
         }
         Some(fs)
@@ -85,9 +88,10 @@ impl FreeSpace {
             }
             let Some((q, r)) = project(&self.axes, &self.viewpoint, p) else { continue };
             facing += 1;
-            match self.cell(q).map(|c| self.max_range[c]) {
+            match self.cell(q).map(|c| self.min_range[c]) {
                 // Outside the silhouette: the camera would have seen this surface.
-                None | Some(0.0) => violated += 1,
+                None => violated += 1,
+                Some(seen) if seen.is_infinite() => violated += 1,
                 // The camera saw something farther along this ray: it looked through here.
                 Some(seen) if seen > r + self.margin => violated += 1,
                 _ => {}
