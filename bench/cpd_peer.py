@@ -416,7 +416,8 @@ def main():
                           "results": results}, indent=2))
     else:
         print("CPD peer benchmark: machine %s; pycpd %s, rustcpd %s, numpy %s" % (
-            machine, versions.get("pycpd"), versions.get("rustcpd"), np.__version__))
+            machine, versions.get("pycpd") or "not installed", versions.get("rustcpd") or "not installed",
+            np.__version__))
         print("non-rigid, beta %.3g x source RMS radius, lambda %.3g, w %.3g, %d iterations (tolerance 0); "
               "peers get the clouds in graspd's normalised frame" % (a.beta, a.lam, a.w, a.iters))
         print("time: wall clock of the registration call (peers) / of the whole `graspd cpd` process (graspd); "
