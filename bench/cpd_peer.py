@@ -174,7 +174,8 @@ def run_peer(name, src_n, tgt_n, workdir, params, timeout):
         t1 = float(done[0][2])
         per_iter = (t - t1) / max(it - 1, 1)
         est = t + (params["iters"] - it) * per_iter
-        note += "; %d of %d iterations in %.1f s (first ended at %.1f s), projected %.0f s" % (
+        note += ("; %d of %d iterations in %.1f s (first ended at %.1f s); about %.0f s at that pace, a rough "
+                 "guide only (per-iteration cost changes with sigma; raise --timeout to measure)") % (
             it, params["iters"], t, t1, est)
         return {"skipped": note, "iterations_done": it, "estimated_time_s": est}
     if r.returncode != 0:
