@@ -9,7 +9,7 @@
 //!   negligible (e^{-32} at 8σ); a uniform grid over X finds the pairs that
 //!   matter (see `grid.rs` for why not a k-d tree).
 
-use super::fastexp::exp_neg;
+use super::fastexp::{exp_neg, exp_neg_f32};
 use super::grid::RadiusGrid;
 
 pub type P3 = [f64; 3];
@@ -42,6 +42,14 @@ pub struct EStep {
     x_radius: f64,
     /// Pairs farther than this many σ are dropped once that prunes most pairs.
     pub cutoff_sigmas: f64,
+    /// Truncate when the cutoff radius is below this fraction of the data's
+    /// bounding radius; below it, the pairs that matter are few enough that
+    /// finding them beats evaluating all of them.
+    pub truncate_below: f64,
+    /// Evaluate the dense sums in f32 (twice the SIMD lanes). For fits that
+    /// need no more (registration); CPD keeps f64 to agree with its peers.
+    pub single_precision: bool,
+    f32buf: F32Buffers,
     // Reused buffers.
     ys: [Vec<f64>; 3],
     row: Vec<f64>,
@@ -56,7 +64,7 @@ impl EStep {
         let n = x.len().max(1) as f64;
         let c = x.iter().fold([0.0; 3], |a, p| [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]);
         let x_radius = x.iter().map(|p| dist2(p, &c)).fold(0.0, f64::max).sqrt();
-        Self { x: x.to_vec(), grid: RadiusGrid::default(), grid_radius: 0.0, x_radius, cutoff_sigmas: CUTOFF_SIGMAS, ys: Default::default(), row: Vec::new(), acc: Default::default(), pi: Vec::new(), den: Vec::new(), pairs: Vec::new() }
+        Self { x: x.to_vec(), grid: RadiusGrid::default(), grid_radius: 0.0, x_radius, cutoff_sigmas: CUTOFF_SIGMAS, truncate_below: 0.5, single_precision: false, f32buf: F32Buffers::default(), ys: Default::default(), row: Vec::new(), acc: Default::default(), pi: Vec::new(), den: Vec::new(), pairs: Vec::new() }
     }
 
     pub fn data(&self) -> &[P3] {
@@ -88,7 +96,7 @@ impl EStep {
         let c = outlier_constant(sigma2, w, m, n);
         let cutoff = self.cutoff_sigmas * sigma2.sqrt();
         // Truncate when the cutoff ball holds a small share of the data volume.
-        if n >= 64 && cutoff < 0.5 * self.x_radius {
+        if n >= 64 && cutoff < self.truncate_below * self.x_radius {
             self.run_truncated(y, weights, sigma2, c, cutoff * cutoff, out);
         } else {
             self.run_dense(y, weights, sigma2, c, out);
@@ -110,6 +118,29 @@ impl EStep {
         }
         self.row.resize(m, 0.0);
         let k = -0.5 / sigma2;
+        if self.single_precision {
+            let b = &mut self.f32buf;
+            if b.x.len() != self.x.len() {
+                b.x = self.x.iter().map(|p| [p[0] as f32, p[1] as f32, p[2] as f32]).collect();
+            }
+            for (d, ys) in b.ys.iter_mut().enumerate() {
+                ys.clear();
+                ys.extend(y.iter().map(|p| p[d] as f32));
+            }
+            b.pi.clear();
+            b.pi.extend(self.pi.iter().map(|&w| w as f32));
+            b.row.resize(m, 0.0);
+            #[cfg(target_arch = "x86_64")]
+            {
+                if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                    // SAFETY: the CPU supports the features the function is compiled for.
+                    unsafe { dense_rows_f32_avx2(b, m, k as f32, c, out) };
+                    return;
+                }
+            }
+            dense_rows_f32(b, m, k as f32, c, out);
+            return;
+        }
         let (ys, row, x, acc, pi) = (&self.ys, &mut self.row, &self.x, &mut self.acc, &self.pi);
         #[cfg(target_arch = "x86_64")]
         {
@@ -217,6 +248,68 @@ unsafe fn dense_rows_avx2(x: &[P3], ys: &[Vec<f64>; 3], pi: &[f64], row: &mut [f
     dense_rows(x, ys, pi, row, acc, m, k, c, out)
 }
 
+#[derive(Default)]
+struct F32Buffers {
+    x: Vec<[f32; 3]>,
+    ys: [Vec<f32>; 3],
+    pi: Vec<f32>,
+    row: Vec<f32>,
+    acc: [Vec<f32>; 4],
+}
+
+/// `dense_rows` in single precision; per-point sums stay in f64.
+#[inline(always)]
+fn dense_rows_f32(b: &mut F32Buffers, m: usize, k: f32, c: f64, out: &mut Posteriors) {
+    let F32Buffers { x, ys, pi, row, acc } = b;
+    let (yx, yy, yz, pi) = (&ys[0][..m], &ys[1][..m], &ys[2][..m], &pi[..m]);
+    for a in acc.iter_mut() {
+        a.clear();
+        a.resize(m, 0.0);
+    }
+    let [p1, px0, px1, px2] = acc;
+    let (p1, px0, px1, px2) = (&mut p1[..m], &mut px0[..m], &mut px1[..m], &mut px2[..m]);
+    let mut nll = 0.0;
+    for (j, xn) in x.iter().enumerate() {
+        let row = &mut row[..m];
+        for ((((r, a), bb), cc), w) in row.iter_mut().zip(yx).zip(yy).zip(yz).zip(pi) {
+            let (dx, dy, dz) = (xn[0] - a, xn[1] - bb, xn[2] - cc);
+            *r = w * exp_neg_f32(k * (dx * dx + dy * dy + dz * dz));
+        }
+        let mut part = [0.0f32; 8];
+        let chunks = row.chunks_exact(8);
+        let tail: f32 = chunks.remainder().iter().sum();
+        for ch in chunks {
+            for l in 0..8 {
+                part[l] += ch[l];
+            }
+        }
+        let sum = part.iter().map(|&v| v as f64).sum::<f64>() + tail as f64;
+        let den = sum + c;
+        nll -= den.ln();
+        let inv = 1.0 / den;
+        out.pt1[j] = sum * inv;
+        let inv32 = inv as f32;
+        let (w0, w1, w2) = (xn[0] * inv32, xn[1] * inv32, xn[2] * inv32);
+        for ((((r, a), bb), cc), d) in row.iter().zip(p1.iter_mut()).zip(px0.iter_mut()).zip(px1.iter_mut()).zip(px2.iter_mut()) {
+            *a += r * inv32;
+            *bb += r * w0;
+            *cc += r * w1;
+            *d += r * w2;
+        }
+    }
+    for i in 0..m {
+        out.p1[i] = p1[i] as f64;
+        out.px[i] = [px0[i] as f64, px1[i] as f64, px2[i] as f64];
+    }
+    out.neg_log_likelihood += nll;
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn dense_rows_f32_avx2(b: &mut F32Buffers, m: usize, k: f32, c: f64, out: &mut Posteriors) {
+    dense_rows_f32(b, m, k, c, out)
+}
+
 /// The uniform outlier term of CPD: (2πσ²)^{3/2} · w/(1−w) · M/N.
 pub fn outlier_constant(sigma2: f64, w: f64, m: usize, n: usize) -> f64 {
     let w = w.clamp(0.0, 0.999);
@@ -302,6 +395,16 @@ mod tests {
         let mut out = Posteriors::default();
         e.run(&y, 0.05, 0.1, &mut out);
         assert_close(&out, &reference(&x, &y, 0.05, 0.1), 1e-10);
+    }
+
+    #[test]
+    fn single_precision_matches_the_textbook_e_step() {
+        let (x, y) = (cloud(300, 5), cloud(200, 6));
+        let mut e = EStep::new(&x);
+        e.single_precision = true;
+        let mut out = Posteriors::default();
+        e.run(&y, 0.05, 0.1, &mut out);
+        assert_close(&out, &reference(&x, &y, 0.05, 0.1), 1e-4);
     }
 
     #[test]

@@ -486,6 +486,10 @@ fn em(
     let mut estep = EStep::new(x);
     // A fit needs the pairs within a few σ only (e^{-12.5} beyond 5σ).
     estep.cutoff_sigmas = 5.0;
+    estep.single_precision = true;
+    // Registration sets are small (≤ 400 a side): the f32 dense sums beat
+    // the grid until the cutoff ball is a small part of the view.
+    estep.truncate_below = 0.2;
     let mut post = Posteriors::default();
     let mut y_model = Vec::with_capacity(model.len());
     model.evaluate_into(&latent, &mut y_model);
