@@ -26,6 +26,8 @@ fn graspd_json(args: &[&str]) -> serde_json::Value {
 struct Fixture {
     _dir: tempfile::TempDir,
     views: Vec<(PathBuf, Vec<[f32; 3]>, serde_json::Value)>,
+    /// `graspd grasp --json` on the first view.
+    grasp: serde_json::Value,
 }
 
 fn fixture() -> &'static Fixture {
@@ -42,7 +44,8 @@ fn fixture() -> &'static Fixture {
             let points = cloudfile::read_cloud(&out).unwrap();
             views.push((out, points, expected));
         }
-        Fixture { _dir: dir, views }
+        let grasp = graspd_json(&["grasp", "--category", "mug", "--cloud", views[0].0.to_str().unwrap(), "--json"]);
+        Fixture { _dir: dir, views, grasp }
     })
 }
 
@@ -72,7 +75,7 @@ impl Daemon {
         let dir = tempfile::tempdir().unwrap();
         let cfg = dir.path().join("graspd.toml");
         // Test defaults, unless `extra` sets the key.
-        let base = [format!("service_prefix = \"{prefix}\""), "categories = [\"mug\"]".into(), "workers = 2".into(), "housekeeping_ms = 100".into()];
+        let base = [format!("service_prefix = \"{prefix}\""), "categories = [\"mug\"]".into(), "workers = 2".into(), "housekeeping_ms = 100".into(), "slow_request_ms = 5000.0".into()];
         let keys: Vec<&str> = extra.lines().filter_map(|l| l.split('=').next()).map(str::trim).collect();
         let mut text: Vec<String> = base.into_iter().filter(|l| !keys.contains(&l.split('=').next().unwrap().trim())).collect();
         text.push(extra.to_owned());
@@ -146,8 +149,31 @@ impl Drop for Daemon {
     }
 }
 
+fn floats(v: &serde_json::Value) -> Vec<f64> {
+    v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect()
+}
+
+/// The daemon's Grasp against `graspd grasp --json` on the same cloud: the same numbers.
+fn assert_same_grasp(got: &graspd_client::Grasp, expected: &serde_json::Value) {
+    assert_same_registration(&got.registration, &expected["registration"]);
+    for (h, e) in [(&got.grasp, &expected["grasp"]), (&got.pregrasp, &expected["pregrasp"])] {
+        assert_eq!(h.wrist_pose.translation.to_vec(), floats(&e["wrist_pose"]["translation"]));
+        assert_eq!(h.wrist_pose.rotation_xyzw.to_vec(), floats(&e["wrist_pose"]["rotation_xyzw"]));
+        assert_eq!(h.joints.len(), e["joints"].as_object().unwrap().len());
+        for (name, q) in &h.joints {
+            assert_eq!(*q, e["joints"][name].as_f64().unwrap(), "{name}");
+        }
+        for (name, q) in &h.actuated {
+            assert_eq!(*q, e["actuated"][name].as_f64().unwrap(), "{name}");
+        }
+    }
+    assert!((got.task_space_distance_m * 100.0 - expected["task_space_distance_cm"].as_f64().unwrap()).abs() < 1e-12);
+    assert_eq!(got.pregrasp_collision_free, expected["pregrasp"]["collision_free"].as_bool().unwrap());
+    assert_eq!(got.table_z_m, expected["table_z"].as_f64());
+}
+
 fn assert_same_registration(got: &graspd_client::Registration, expected: &serde_json::Value) {
-    let latent: Vec<f64> = expected["latent"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    let latent = floats(&expected["latent"]);
     assert_eq!(got.latent, latent, "latent");
     assert_eq!(got.scale, expected["scale"].as_f64().unwrap());
     let kps = expected["keypoints"].as_array().unwrap();
@@ -160,6 +186,7 @@ fn assert_same_registration(got: &graspd_client::Registration, expected: &serde_
     let q: Vec<f64> = expected["pose"]["rotation_xyzw"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
     assert_eq!(got.pose.rotation_xyzw.to_vec(), q);
     assert_eq!(got.fit.confident, expected["fit"]["confident"].as_bool().unwrap());
+    assert_eq!(got.fit.ambiguous_pose, expected["fit"]["ambiguous_pose"].as_bool().unwrap());
 }
 
 #[test]
@@ -178,6 +205,9 @@ fn concurrent_clients_get_the_same_answers_as_the_cli() {
                     assert_same_registration(&r, expected);
                     assert_eq!(r.points as usize, points.len());
                     assert!(c.health().unwrap().serving);
+                }
+                if c.health().unwrap().grasp_available {
+                    assert_same_grasp(&c.grasp("mug", &f.views[0].1, TIMEOUT).unwrap(), &f.grasp);
                 }
             })
         })
@@ -245,13 +275,22 @@ fn bad_inputs_get_their_status_and_the_daemon_keeps_serving() {
         assert_eq!(got, *want, "{what}: {msg}");
         assert!(!msg.is_empty(), "{what}: a status without a message");
     }
-    // Grasp: its own checks, then FAILED_PRECONDITION in a build without the grasp solver.
-    let (h, _) = c.grasp_raw(Cloud::Slice(&good), |h| { set_mug(h); h.table_mode = 7 }, TIMEOUT).unwrap();
-    assert_eq!(StatusCode::from_u32(h.status), StatusCode::InvalidArgument);
-    let e = c.grasp("mug", &f.views[0].1, TIMEOUT).unwrap_err();
-    if !c.health().unwrap().grasp_available {
-        assert_eq!(e.code, StatusCode::FailedPrecondition, "{e}");
-        assert!(e.message.contains("not available"), "{e}");
+    // Grasp: its own checks (table, pre-grasp options), then the same answer as `graspd grasp`.
+    for (what, edit) in [
+        ("table_mode 7", Box::new(move |h: &mut proto::RequestHeader| { set_mug(h); h.table_mode = 7 }) as Box<dyn Fn(&mut proto::RequestHeader)>),
+        ("NaN table", Box::new(move |h| { set_mug(h); h.table_mode = proto::table_mode::GIVEN; h.table_z_m = f32::NAN })),
+        ("back-off 3 m", Box::new(move |h| { set_mug(h); h.pregrasp_backoff_m = 3.0 })),
+        ("NaN viewpoint", Box::new(move |h| { set_mug(h); h.flags = proto::flags::VIEWPOINT; h.viewpoint_in_cloud_m = [0.0, f32::NAN, 0.0] })),
+    ] {
+        let (h, _) = c.grasp_raw(Cloud::Slice(&good), |h| edit(h), TIMEOUT).unwrap();
+        assert_eq!(StatusCode::from_u32(h.status), StatusCode::InvalidArgument, "{what}: {}", proto::text_lossy(&h.message));
+    }
+    match c.grasp("mug", &f.views[0].1, TIMEOUT) {
+        Ok(g) => assert_same_grasp(&g, &f.grasp),
+        Err(e) => {
+            assert!(!c.health().unwrap().grasp_available, "{e}");
+            assert_eq!(e.code, StatusCode::FailedPrecondition, "{e}");
+        }
     }
     // More than max_in_flight_per_client (1) requests from one client at once.
     let first = c.start_register("mug", &f.views[0].1, TIMEOUT).unwrap();

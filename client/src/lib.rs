@@ -173,6 +173,8 @@ pub struct Fit {
     pub residual_m: f64,
     pub inlier_threshold_m: f64,
     pub confident: bool,
+    /// Another pose explains the view almost as well: the orientation is not determined by it.
+    pub ambiguous_pose: bool,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -220,6 +222,8 @@ pub struct CloudOptions {
     pub cloud_frame: String,
     /// World up in the cloud's frame; None = unknown. Default z up.
     pub up: Option<[f32; 3]>,
+    /// The camera's origin in the cloud's frame, when known ([0, 0, 0] for a cloud in the camera frame).
+    pub viewpoint: Option<[f32; 3]>,
     pub seed: u64,
     /// Grasp: table plane (None: AUTO).
     pub table: Option<Table>,
@@ -238,7 +242,7 @@ pub enum Table {
 
 impl Default for CloudOptions {
     fn default() -> Self {
-        Self { cloud_frame: "world".into(), up: Some([0.0, 0.0, 1.0]), seed: 0, table: None, pregrasp_backoff_m: None, pregrasp_joint_fraction: None }
+        Self { cloud_frame: "world".into(), up: Some([0.0, 0.0, 1.0]), viewpoint: None, seed: 0, table: None, pregrasp_backoff_m: None, pregrasp_joint_fraction: None }
     }
 }
 
@@ -781,6 +785,10 @@ fn apply_cloud_options(h: &mut RequestHeader, category: &str, o: &CloudOptions) 
     }
     h.cloud_frame = proto::str_to_text(&o.cloud_frame);
     h.up_in_cloud = o.up.unwrap_or([0.0; 3]);
+    if let Some(v) = o.viewpoint {
+        h.flags |= proto::flags::VIEWPOINT;
+        h.viewpoint_in_cloud_m = v;
+    }
     h.seed = o.seed;
     match o.table {
         None => h.table_mode = proto::table_mode::AUTO,
@@ -803,7 +811,13 @@ fn registration(r: &proto::Registration, category: &str, frame: &str) -> Registr
         pose: Pose { frame: "cloud_from_canonical".into(), translation: r.translation_cloud_from_canonical_m, rotation_xyzw: r.rotation_cloud_from_canonical_xyzw },
         scale: r.scale,
         sigma2_m2: r.sigma2_m2,
-        fit: Fit { inlier_fraction: r.inlier_fraction, residual_m: r.residual_m, inlier_threshold_m: r.inlier_threshold_m, confident: r.confident != 0 },
+        fit: Fit {
+            inlier_fraction: r.inlier_fraction,
+            residual_m: r.residual_m,
+            inlier_threshold_m: r.inlier_threshold_m,
+            confident: r.confident != 0,
+            ambiguous_pose: r.ambiguous_pose != 0,
+        },
         keypoints: r.keypoints[..(r.keypoint_count as usize).min(proto::MAX_KEYPOINTS)]
             .iter()
             .map(|k| NamedPoint { name: proto::text_lossy(&k.name), position: k.position_cloud_m })

@@ -235,7 +235,7 @@ pub struct RequestHeader {
     pub seed: u64,
     /// Must equal [`PROTOCOL_VERSION`].
     pub protocol_version: u32,
-    /// Reserved, must be 0.
+    /// Bits of [`flags`]; unknown bits are refused (INVALID_ARGUMENT).
     pub flags: u32,
     /// Category name (Register, Grasp), e.g. "mug"; see ListCategories.
     pub category: Name,
@@ -254,7 +254,17 @@ pub struct RequestHeader {
     /// Grasp: pre-grasp joints as a share of the way from the open hand to the
     /// grasp, in (0, 1]; 0 = daemon default.
     pub pregrasp_joint_fraction: f32,
-    pub reserved: u32,
+    /// With flag VIEWPOINT: the camera's origin in the cloud's frame, metres
+    /// ((0, 0, 0) for a cloud in the camera's frame). Model surfaces facing away
+    /// from it are not expected in the view.
+    pub viewpoint_in_cloud_m: [f32; 3],
+}
+
+/// Bits of [`RequestHeader::flags`].
+pub mod flags {
+    /// `viewpoint_in_cloud_m` is set.
+    pub const VIEWPOINT: u32 = 1;
+    pub const ALL: u32 = VIEWPOINT;
 }
 
 /// One point of a cloud: (x, y, z) in metres in the request's `cloud_frame`.
@@ -391,6 +401,10 @@ pub struct Registration {
     pub confident: u32,
     /// Points received in the request.
     pub points: u32,
+    /// 1 when another pose, at least 30° away, explains the view almost as well
+    /// (a mug whose handle is hidden): the orientation is not determined by this view.
+    pub ambiguous_pose: u32,
+    pub reserved: u32,
     /// Canonical keypoints moved through the fitted deformation and pose.
     pub keypoints: [Keypoint; MAX_KEYPOINTS],
 }
@@ -613,13 +627,13 @@ mod tests {
     /// The layout README.md documents; a change here is a protocol change.
     #[test]
     fn layouts_are_pinned() {
-        assert_eq!((size_of::<RequestHeader>(), align_of::<RequestHeader>()), (136, 8));
+        assert_eq!((size_of::<RequestHeader>(), align_of::<RequestHeader>()), (144, 8));
         assert_eq!(offset_of!(RequestHeader, protocol_version), 32);
         assert_eq!(offset_of!(RequestHeader, category), 40);
         assert_eq!(offset_of!(RequestHeader, cloud_frame), 72);
         assert_eq!(offset_of!(RequestHeader, up_in_cloud), 104);
         assert_eq!(offset_of!(RequestHeader, table_mode), 116);
-        assert_eq!(offset_of!(RequestHeader, reserved), 132);
+        assert_eq!(offset_of!(RequestHeader, viewpoint_in_cloud_m), 132);
         assert_eq!((size_of::<Point>(), align_of::<Point>()), (12, 4));
         assert_eq!(size_of::<NoPayload>(), 8);
         assert_eq!((size_of::<ResponseHeader>(), align_of::<ResponseHeader>()), (160, 8));
@@ -630,12 +644,13 @@ mod tests {
         assert_eq!(size_of::<CategoriesResponse>(), 8 + 8 * 680);
         assert_eq!(size_of::<Keypoint>(), 56);
         assert_eq!(offset_of!(Registration, latent_dim), 160);
-        assert_eq!(size_of::<Registration>(), 176 + 8 * 56);
+        assert_eq!(offset_of!(Registration, keypoints), 184);
+        assert_eq!(size_of::<Registration>(), 184 + 8 * 56);
         assert_eq!(size_of::<HandConfiguration>(), 312);
-        assert_eq!(offset_of!(GraspResponse, grasp), 624);
-        assert_eq!(offset_of!(GraspResponse, actuated_names), 624 + 624);
-        assert_eq!(offset_of!(GraspResponse, task_space_distance_m), 624 + 624 + 1024);
-        assert_eq!(size_of::<GraspResponse>(), 624 + 624 + 1024 + 48 + 24);
+        assert_eq!(offset_of!(GraspResponse, grasp), 632);
+        assert_eq!(offset_of!(GraspResponse, actuated_names), 632 + 624);
+        assert_eq!(offset_of!(GraspResponse, task_space_distance_m), 632 + 624 + 1024);
+        assert_eq!(size_of::<GraspResponse>(), 632 + 624 + 1024 + 48 + 24);
         assert_eq!(size_of::<MethodStats>(), 32 + 8 + 128 + 8 + 48 + 8);
         assert_eq!(size_of::<StatsResponse>(), 32 + 8 * 232);
     }

@@ -8,6 +8,13 @@ use clap::Parser;
 use std::process::ExitCode;
 
 fn main() -> ExitCode {
+    // `graspd ... | head` must end quietly, not panic in println!: restore the
+    // default SIGPIPE disposition that Rust's runtime replaces.
+    // SAFETY: called first thing in main, before any thread exists.
+    #[cfg(unix)]
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     let args = cli::Cli::parse();
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("GRASPD_LOG").unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")))

@@ -89,6 +89,15 @@ struct CloudArgs {
     /// World up in the cloud's frame, "x,y,z", or "none" when unknown.
     #[arg(long, default_value = "0,0,1")]
     up: String,
+    /// The camera's origin in the cloud's frame, "x,y,z" ("0,0,0" for a cloud in the camera frame).
+    #[arg(long)]
+    viewpoint: Option<String>,
+    /// Grasp: table top height z in the cloud's frame (default: from the cloud when z is up).
+    #[arg(long, allow_hyphen_values = true)]
+    table_z: Option<f32>,
+    /// Grasp: no table plane.
+    #[arg(long)]
+    no_table: bool,
     #[arg(long, default_value_t = 0)]
     seed: u64,
 }
@@ -249,29 +258,49 @@ fn run(cli: &Cli) -> Result<(), Failure> {
         }
         Command::Register(a) | Command::Grasp(a) => {
             let cloud = read_cloud(&a.cloud).map_err(|e| e.to_string())?;
-            let co = CloudOptions { cloud_frame: a.frame.clone(), up: parse_up(&a.up)?, seed: a.seed, ..CloudOptions::default() };
+            let viewpoint = match &a.viewpoint {
+                Some(v) => Some(parse_up(v)?.ok_or("--viewpoint needs three numbers")?),
+                None => None,
+            };
+            let table = match (a.no_table, a.table_z) {
+                (true, _) => Some(graspd_client::Table::None),
+                (false, Some(z)) => Some(graspd_client::Table::At(z)),
+                (false, None) => None,
+            };
+            let co = CloudOptions { cloud_frame: a.frame.clone(), up: parse_up(&a.up)?, viewpoint, seed: a.seed, table, ..CloudOptions::default() };
             let mut c = Client::connect(opts)?;
             let is_grasp = matches!(cli.command, Command::Grasp(_));
+            // The same JSON fields as `graspd register` / `graspd grasp` (what the daemon sends).
             let mut v = if is_grasp {
-                serde_json::json!(c.grasp_with(&a.category, &cloud, &co, timeout)?)
+                grasp_cli_json(&a.category, cloud.len(), &c.grasp_with(&a.category, &cloud, &co, timeout)?)
             } else {
-                serde_json::json!(c.register_with(&a.category, &cloud, &co, timeout)?)
+                let mut v = registration_cli_json(&c.register_with(&a.category, &cloud, &co, timeout)?);
+                v["category"] = serde_json::json!(a.category);
+                v["points"] = serde_json::json!(cloud.len());
+                v
             };
             let t = c.last_call();
             v["timing_us"] = serde_json::json!({"rtt": t.rtt_ns as f64 * 1e-3, "server": t.server_ns as f64 * 1e-3, "compute": t.compute_ns as f64 * 1e-3});
             print(cli.json, &v, || {
                 let r = if is_grasp { &v["registration"] } else { &v };
                 println!(
-                    "{}: scale {:.3}, inliers {:.1}%, residual {:.2} mm, {} (round trip {:.1} ms)",
+                    "{}: scale {:.3}, inliers {:.1}%, residual {:.2} mm, {}{} (round trip {:.1} ms)",
                     a.category,
                     r["scale"].as_f64().unwrap_or(f64::NAN),
                     100.0 * r["fit"]["inlier_fraction"].as_f64().unwrap_or(f64::NAN),
-                    1e3 * r["fit"]["residual_m"].as_f64().unwrap_or(f64::NAN),
+                    r["fit"]["residual_mm"].as_f64().unwrap_or(f64::NAN),
                     if r["fit"]["confident"].as_bool() == Some(true) { "confident" } else { "POOR FIT" },
+                    if r["fit"]["ambiguous_pose"].as_bool() == Some(true) { ", AMBIGUOUS POSE" } else { "" },
                     t.rtt_ns as f64 * 1e-6
                 );
                 for k in r["keypoints"].as_array().into_iter().flatten() {
                     println!("  {:<16} {}", k["name"].as_str().unwrap_or(""), k["position"]);
+                }
+                if is_grasp {
+                    println!("grasp wrist {}, task-space distance {:.3} cm", v["grasp"]["wrist_pose"], v["task_space_distance_cm"].as_f64().unwrap_or(f64::NAN));
+                    for w in v["warnings"].as_array().into_iter().flatten() {
+                        println!("warning: {}", w.as_str().unwrap_or(""));
+                    }
                 }
             });
         }
@@ -565,4 +594,51 @@ fn soak(cli: &Cli, a: &SoakArgs, opts: ClientOptions) -> Result<(), Failure> {
         return Err(format!("{} errors during the soak", errors.load(Ordering::Relaxed)).into());
     }
     Ok(())
+}
+
+/// A registration in `graspd register`'s JSON fields and units (fit in mm).
+fn registration_cli_json(r: &graspd_client::Registration) -> serde_json::Value {
+    serde_json::json!({
+        "latent": r.latent,
+        "pose": r.pose,
+        "scale": r.scale,
+        "sigma2": r.sigma2_m2,
+        "fit": {
+            "inlier_fraction": r.fit.inlier_fraction,
+            "residual_mm": r.fit.residual_m * 1e3,
+            "inlier_mm": r.fit.inlier_threshold_m * 1e3,
+            "confident": r.fit.confident,
+            "ambiguous_pose": r.fit.ambiguous_pose,
+        },
+        "keypoints": r.keypoints,
+        "cloud_frame": r.cloud_frame,
+    })
+}
+
+fn hand_cli_json(h: &graspd_client::HandConfiguration) -> serde_json::Value {
+    let map = |v: &[(String, f64)]| -> serde_json::Map<String, serde_json::Value> { v.iter().map(|(n, q)| (n.clone(), serde_json::json!(q))).collect() };
+    serde_json::json!({
+        "wrist_pose": {"translation": h.wrist_pose.translation, "rotation_xyzw": h.wrist_pose.rotation_xyzw},
+        "joints": map(&h.joints),
+        "actuated": map(&h.actuated),
+    })
+}
+
+/// A grasp in `graspd grasp`'s JSON fields and units (what the daemon sends of it).
+fn grasp_cli_json(category: &str, points: usize, g: &graspd_client::Grasp) -> serde_json::Value {
+    let mut pregrasp = hand_cli_json(&g.pregrasp);
+    pregrasp["collision_free"] = serde_json::json!(g.pregrasp_collision_free);
+    pregrasp["min_clearance_mm"] = serde_json::json!(g.pregrasp_min_clearance_m * 1e3);
+    serde_json::json!({
+        "category": category,
+        "points": points,
+        "registration": registration_cli_json(&g.registration),
+        "grasp": hand_cli_json(&g.grasp),
+        "pregrasp": pregrasp,
+        "task_space_distance_cm": g.task_space_distance_m * 1e2,
+        "residual_mm": {"mean": g.residual_mean_m * 1e3, "max": g.residual_max_m * 1e3},
+        "penetration_mm": g.penetration_m * 1e3,
+        "table_z": g.table_z_m,
+        "warnings": g.warnings,
+    })
 }

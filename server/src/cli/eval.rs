@@ -27,6 +27,12 @@ pub enum EvalCommand {
         /// Lay the tools on their side.
         #[arg(long)]
         on_side: bool,
+        /// Register whole-surface samples instead of camera views (diagnostic).
+        #[arg(long)]
+        full_surface: bool,
+        /// Do not tell the registration where the camera is.
+        #[arg(long)]
+        unknown_viewpoint: bool,
         #[arg(long, default_value_t = 7)]
         seed: u64,
         #[arg(long)]
@@ -47,6 +53,8 @@ pub enum EvalCommand {
         #[arg(long)]
         json: bool,
     },
+    /// Grasps on the training instances: the paper's Table I (ours, WP, CG).
+    Grasp(super::grasp::EvalGraspArgs),
 }
 
 pub fn run(cmd: EvalCommand) -> CliResult {
@@ -78,7 +86,8 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                 }
             }
         }
-        EvalCommand::Transfer { category, views, noise_mm, outliers, scale_jitter, on_side, seed, json } => {
+        EvalCommand::Grasp(a) => return super::grasp::run_eval(a),
+        EvalCommand::Transfer { category, views, noise_mm, outliers, scale_jitter, on_side, full_surface, unknown_viewpoint, seed, json } => {
             let category: Category = category.parse()?;
             let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
             let registrar = Registrar::new(space);
@@ -89,6 +98,8 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                 outliers,
                 scale_jitter,
                 on_side,
+                full_surface,
+                known_viewpoint: !unknown_viewpoint,
                 seed,
                 ..Default::default()
             };
@@ -103,7 +114,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             let out = serde_json::json!({
                 "category": category.name(),
                 "views": views,
-                "noise_mm": noise_mm, "outliers": outliers, "scale_jitter": scale_jitter, "on_side": on_side,
+                "noise_mm": noise_mm, "outliers": outliers, "scale_jitter": scale_jitter, "on_side": on_side, "full_surface": full_surface, "known_viewpoint": !unknown_viewpoint,
                 "test": reports[0],
                 "train": reports[1],
             });

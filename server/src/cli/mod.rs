@@ -3,7 +3,10 @@
 mod assets;
 mod cloud;
 mod cpd;
+mod demo;
 mod eval;
+mod grasp;
+mod hand;
 mod register;
 mod serve;
 mod space;
@@ -36,6 +39,16 @@ enum Command {
     /// Evaluations that print the figures of the issues.
     #[command(subcommand)]
     Eval(eval::EvalCommand),
+    /// The hand model: joints, couplings, keypoints; random reachable keypoint sets.
+    #[command(subcommand)]
+    Hand(hand::HandCommand),
+    /// Wrist pose and joints whose keypoints best match target keypoints.
+    Retarget(grasp::RetargetArgs),
+    /// Registration, grasp and pre-grasp from a partial cloud of a tool.
+    Grasp(grasp::GraspArgs),
+    /// Demonstrations on the canonical tools: author one, check an imported one.
+    #[command(subcommand)]
+    Demo(demo::DemoCommand),
     /// Runs the daemon: serves the engine to local clients over shared memory (iceoryx2).
     Serve(serve::ServeArgs),
 }
@@ -48,6 +61,10 @@ pub fn run(cli: Cli) -> CliResult {
         Command::Space(c) => space::run(c),
         Command::Register(a) => register::run(a),
         Command::Eval(c) => eval::run(c),
+        Command::Hand(c) => hand::run(c),
+        Command::Retarget(a) => grasp::run_retarget(a),
+        Command::Grasp(a) => grasp::run_grasp(a),
+        Command::Demo(c) => demo::run(c),
         Command::Serve(a) => serve::run(a, std::time::Instant::now()),
     }
 }

@@ -15,6 +15,9 @@ pub struct RegisterArgs {
     /// World up in the cloud's frame, "x,y,z" (default: z up); "none" when unknown.
     #[arg(long, default_value = "0,0,1")]
     up: String,
+    /// Camera origin in the cloud's frame, "x,y,z" ("0,0,0" for a cloud in the camera frame); improves partial-view fits.
+    #[arg(long)]
+    viewpoint: Option<String>,
     /// Write the completed shape (cloud frame) here.
     #[arg(long)]
     shape_out: Option<PathBuf>,
@@ -40,7 +43,11 @@ pub fn run(a: RegisterArgs) -> CliResult {
     let cloud = graspd::io::read_cloud(&a.cloud)?;
     let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
     let registrar = Registrar::new(space);
-    let opts = RegisterOptions { up: parse_up(&a.up)?, seed: a.seed, ..Default::default() };
+    let viewpoint = match &a.viewpoint {
+        Some(v) => Some(parse_up(v)?.ok_or("--viewpoint needs three numbers")?),
+        None => None,
+    };
+    let opts = RegisterOptions { up: parse_up(&a.up)?, viewpoint, seed: a.seed, ..Default::default() };
     let reg = registrar.register(&cloud, &opts)?;
     if let Some(p) = &a.shape_out {
         graspd::io::write_cloud(p, &registrar.completed_shape(&reg))?;

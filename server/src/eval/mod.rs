@@ -1,4 +1,5 @@
 //! Evaluations that print the figures the issues ask for.
 
+pub mod grasp;
 pub mod transfer;
 pub mod ycb;

@@ -32,13 +32,18 @@ pub struct TransferEvalOptions {
     pub scale_jitter: f64,
     /// Lay the tool on its side (rotated 90° about its x axis) instead of its natural rest pose.
     pub on_side: bool,
+    /// Register samples of the whole surface instead of a camera view (a
+    /// diagnostic: separates the shape space's error from the partial view's).
+    pub full_surface: bool,
     pub seed: u64,
     pub register: RegisterOptions,
+    /// Tell the registration where the camera is (the known viewpoint of a real set-up).
+    pub known_viewpoint: bool,
 }
 
 impl Default for TransferEvalOptions {
     fn default() -> Self {
-        Self { views: 8, noise: DepthNoise::default(), outliers: 0.0, scale_jitter: 0.0, on_side: false, seed: 7, register: RegisterOptions::default() }
+        Self { views: 8, noise: DepthNoise::default(), outliers: 0.0, scale_jitter: 0.0, on_side: false, full_surface: false, seed: 7, register: RegisterOptions::default(), known_viewpoint: true }
     }
 }
 
@@ -68,6 +73,9 @@ pub struct SplitReport {
     pub confident_fraction: f64,
     /// Angle between the estimated and the true tool orientation (ours).
     pub rotation_error_deg: Percentiles,
+    /// Share of views flagged `ambiguous_pose`, and the keypoint error over the others.
+    pub ambiguous_fraction: f64,
+    pub unambiguous_keypoint_error_mm: Percentiles,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -83,6 +91,7 @@ struct Trial {
     chamfer: [f64; 3],
     fit_ms: f64,
     confident: bool,
+    ambiguous: bool,
     rotation_error_deg: f64,
 }
 
@@ -115,6 +124,8 @@ pub fn evaluate(registrar: &Registrar, instances: &[&Instance], split: Split, op
         fit_ms: FitTimes { p50: times.0, p99: times.1, max: times.2 },
         confident_fraction: trials.iter().filter(|t| t.confident).count() as f64 / trials.len().max(1) as f64,
         rotation_error_deg: percentiles(trials.iter().map(|t| t.rotation_error_deg).collect()),
+        ambiguous_fraction: trials.iter().filter(|t| t.ambiguous).count() as f64 / trials.len().max(1) as f64,
+        unambiguous_keypoint_error_mm: percentiles(trials.iter().filter(|t| !t.ambiguous).flat_map(|t| t.kp[0].iter().copied()).collect()),
     }
 }
 
@@ -142,7 +153,11 @@ fn trial(registrar: &Registrar, inst: &Instance, truth_surface: &[P3], view: usi
     let intrinsics = Intrinsics::default();
     let cam_pose = standard_view(view, opts.views, centre, mesh.diagonal(), intrinsics).ok()?;
     let cam = DepthCamera { intrinsics, world_from_camera: cam_pose, noise: opts.noise };
-    let mut cloud = cam.capture(&scene, rng.random()).ok()?.points_world;
+    let mut cloud = if opts.full_surface {
+        sample_points(&mesh, 3000, rng.random()).ok()?.into_iter().map(|p| world_from_tool * p).collect()
+    } else {
+        cam.capture(&scene, rng.random()).ok()?.points_world
+    };
     if cloud.len() < 50 {
         return None;
     }
@@ -150,13 +165,15 @@ fn trial(registrar: &Registrar, inst: &Instance, truth_surface: &[P3], view: usi
 
     // Ours.
     let t0 = Instant::now();
-    let reg = registrar.register(&cloud, &RegisterOptions { seed: rng.random(), ..opts.register }).ok()?;
+    let t = cam_pose.translation.vector;
+    let viewpoint = (opts.known_viewpoint && !opts.full_surface).then_some([t.x, t.y, t.z]);
+    let reg = registrar.register(&cloud, &RegisterOptions { seed: rng.random(), viewpoint, ..opts.register }).ok()?;
     let fit_ms = t0.elapsed().as_secs_f64() * 1e3;
     let ours_kp: Vec<P3> = reg.keypoints.iter().map(|k| k.position).collect();
     let ours_shape = cpd::to_p3(&registrar.completed_shape(&reg));
 
     // Baseline 1: the undeformed canonical, pose fitted by the same machinery.
-    let canon = registrar.register(&cloud, &RegisterOptions { seed: rng.random(), fit_latent: false, ..opts.register }).ok()?;
+    let canon = registrar.register(&cloud, &RegisterOptions { seed: rng.random(), fit_latent: false, viewpoint, ..opts.register }).ok()?;
     let canon_kp: Vec<P3> = canon.keypoints.iter().map(|k| k.position).collect();
     let canon_shape = cpd::to_p3(&registrar.completed_shape(&canon));
 
@@ -181,14 +198,15 @@ fn trial(registrar: &Registrar, inst: &Instance, truth_surface: &[P3], view: usi
         chamfer: [chamfer_mm(&ours_shape, &truth_world), chamfer_mm(&canon_shape, &truth_world), chamfer_mm(&cpd_shape, &truth_world)],
         fit_ms,
         confident: reg.fit.confident,
+        ambiguous: reg.fit.ambiguous_pose,
         rotation_error_deg,
     })
     .inspect(|t| {
         if std::env::var_os("GRASPD_EVAL_TRACE").is_some() {
             let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
             eprintln!(
-                "{} view {view}: {} pts, rot err {:.1}°, scale {:.3} (true {scale:.3}), inliers {:.2}, kp mean ours {:.1} canonical {:.1} cpd {:.1} mm, {:.1} ms",
-                inst.name, t.points, t.rotation_error_deg, reg.scale, reg.fit.inlier_fraction, mean(&t.kp[0]), mean(&t.kp[1]), mean(&t.kp[2]), t.fit_ms
+                "{} view {view}: {} pts, ambiguous {}, rot err {:.1}°, scale {:.3} (true {scale:.3}), inliers {:.2}, kp mean ours {:.1} canonical {:.1} cpd {:.1} mm, {:.1} ms",
+                inst.name, t.points, t.ambiguous, t.rotation_error_deg, reg.scale, reg.fit.inlier_fraction, mean(&t.kp[0]), mean(&t.kp[1]), mean(&t.kp[2]), t.fit_ms
             );
             eprintln!("   ours per keypoint {:?}  canonical {:?}", t.kp[0].iter().map(|x| x.round()).collect::<Vec<_>>(), t.kp[1].iter().map(|x| x.round()).collect::<Vec<_>>());
         }

@@ -10,7 +10,7 @@
 
 use nalgebra::{Isometry3, Point3};
 
-use super::penetration::{HandSpheres, Scene};
+use super::penetration::{clearance, HandSpheres, Scene};
 use super::{Grasp, GraspError};
 use crate::hand::{HandKinematics, HandModel, JointDrive};
 
@@ -237,7 +237,44 @@ impl PoseFile {
     }
 }
 
+/// Directory of the bundled demonstrations (`assets/demos`), fixed at compile time.
+pub const DEMO_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/demos");
+
+/// A demonstration file that cannot be read.
+#[derive(Debug, thiserror::Error)]
+pub enum DemoFileError {
+    #[error("cannot read {path}: {source}")]
+    Io {
+        path: std::path::PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path} is not a demonstration file: {source}")]
+    Json {
+        path: std::path::PathBuf,
+        #[source]
+        source: serde_json::Error,
+    },
+}
+
 impl Demonstration {
+    /// Reads a demonstration file (format: `assets/demos/README.md`).
+    pub fn load(path: impl AsRef<std::path::Path>) -> Result<Self, DemoFileError> {
+        let path = path.as_ref();
+        let text =
+            std::fs::read_to_string(path).map_err(|source| DemoFileError::Io { path: path.to_path_buf(), source })?;
+        serde_json::from_str(&text).map_err(|source| DemoFileError::Json { path: path.to_path_buf(), source })
+    }
+
+    /// The bundled demonstration of a category (`assets/demos/NAME.json`).
+    pub fn builtin(category: crate::tools::Category) -> Result<Self, DemoFileError> {
+        Self::load(Self::builtin_path(category))
+    }
+
+    pub fn builtin_path(category: crate::tools::Category) -> std::path::PathBuf {
+        std::path::Path::new(DEMO_DIR).join(format!("{}.json", category.name()))
+    }
+
     /// Records `grasp` made on a tool placed at `tool_pose_world`.
     pub fn new(hand: &HandModel, tool: &str, grasp: &Grasp, tool_pose_world: &Isometry3<f64>) -> Self {
         let to_tool = tool_pose_world.inverse();
@@ -307,4 +344,182 @@ impl Demonstration {
             })
             .collect()
     }
+}
+
+/// What a demonstration must satisfy on its tool ([`check_demonstration`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct DemoCheckOptions {
+    /// A finger touches the tool when some part of it is within this, millimetres.
+    pub contact_mm: f64,
+    /// Deepest allowed penetration of the hand into the tool or the table, millimetres.
+    pub max_penetration_mm: f64,
+    /// Fingers (fingertip names without `_tip`, e.g. "if") that may stay off
+    /// the tool; every other finger must touch it.
+    pub free_fingers: Vec<String>,
+    /// Largest allowed distance between the file's keypoints and the
+    /// keypoints of its own wrist pose and joints (forward kinematics), mm.
+    pub max_keypoint_mismatch_mm: f64,
+    pub sphere_spacing: f64,
+}
+
+impl Default for DemoCheckOptions {
+    fn default() -> Self {
+        Self {
+            contact_mm: 3.0,
+            max_penetration_mm: 1.0,
+            free_fingers: Vec::new(),
+            max_keypoint_mismatch_mm: 1.0,
+            sphere_spacing: 0.5,
+        }
+    }
+}
+
+/// One finger's distance to the tool.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct FingerClearance {
+    /// The fingertip's name without `_tip` ("if", "mf", "rf", "lf", "th" for the SIH).
+    pub finger: String,
+    /// Smallest distance of the finger's distal link to the tool surface, mm
+    /// (negative: piercing).
+    pub tip_clearance_mm: f64,
+    /// Smallest distance of any link of the finger to the tool surface, mm.
+    pub clearance_mm: f64,
+    /// `clearance_mm` ≤ the contact threshold.
+    pub contact: bool,
+}
+
+/// How a demonstration sits on its tool.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct DemoCheck {
+    pub fingers: Vec<FingerClearance>,
+    /// Smallest distance of the palm (root link) to the tool, mm.
+    pub palm_clearance_mm: f64,
+    /// Smallest distance of the hand to the table, mm (absent without a table).
+    pub table_clearance_mm: Option<f64>,
+    /// Deepest penetration into the tool or the table, mm (0 when clear).
+    pub penetration_mm: f64,
+    /// Distance of the stated keypoints to the forward kinematics of the
+    /// stated grasp, mm.
+    pub keypoint_mismatch_mm: super::ResidualStats,
+    /// Why the demonstration is refused; empty when it passes.
+    pub problems: Vec<String>,
+}
+
+impl DemoCheck {
+    pub fn ok(&self) -> bool {
+        self.problems.is_empty()
+    }
+}
+
+/// The links of each finger: for every fingertip, its link and its
+/// ancestors up to (not including) the root, with the finger's name.
+pub fn finger_links(hand: &HandModel) -> Vec<(String, Vec<crate::hand::LinkId>)> {
+    hand.fingertips()
+        .iter()
+        .map(|tip| {
+            let name = tip.name.strip_suffix("_tip").unwrap_or(&tip.name).to_owned();
+            let mut links = Vec::new();
+            let mut l = tip.link;
+            while l != hand.root_link() {
+                links.push(l);
+                match hand.links()[l].parent_joint {
+                    Some(j) => l = hand.joints()[j].parent,
+                    None => break,
+                }
+            }
+            (name, links)
+        })
+        .collect()
+}
+
+/// Checks `grasp` (stated keypoints `keypoints_world`, hand keypoint order)
+/// against the tool and table of `scene`: every finger not listed as free
+/// touches the tool, nothing pierces the tool or table deeper than allowed,
+/// the joints are within limits and the stated keypoints are the grasp's own.
+pub fn check_demonstration(
+    hand: &HandModel,
+    grasp: &Grasp,
+    keypoints_world: &[Point3<f64>],
+    scene: &Scene,
+    options: &DemoCheckOptions,
+) -> Result<DemoCheck, GraspError> {
+    grasp.validate(hand)?;
+    if keypoints_world.len() != hand.keypoints().len() {
+        return Err(GraspError::WrongKeypointCount { expected: hand.keypoints().len(), got: keypoints_world.len() });
+    }
+    let spheres = HandSpheres::new(hand, options.sphere_spacing);
+    let mut kin = HandKinematics::new(hand);
+    kin.update(hand, &grasp.wrist_pose_world, &grasp.actuated);
+    let tool_clearance = |i: usize| -> f64 {
+        let c = spheres.center_world(&kin, i);
+        scene
+            .tool
+            .and_then(|t| t.signed_distance(&c, f64::INFINITY))
+            .map_or(f64::INFINITY, |(sd, _)| sd - spheres.spheres()[i].radius)
+    };
+    let per_sphere: Vec<f64> = (0..spheres.spheres().len()).map(tool_clearance).collect();
+    let min_on = |links: &[crate::hand::LinkId]| -> f64 {
+        spheres
+            .spheres()
+            .iter()
+            .zip(&per_sphere)
+            .filter(|(s, _)| links.contains(&s.link))
+            .map(|(_, &c)| c)
+            .fold(f64::INFINITY, f64::min)
+    };
+    let mut problems = Vec::new();
+    let fingers: Vec<FingerClearance> = finger_links(hand)
+        .into_iter()
+        .map(|(finger, links)| {
+            let clearance_mm = 1e3 * min_on(&links);
+            let tip_clearance_mm = 1e3 * min_on(&links[..1]);
+            FingerClearance { finger, tip_clearance_mm, clearance_mm, contact: clearance_mm <= options.contact_mm }
+        })
+        .collect();
+    for name in &options.free_fingers {
+        if !fingers.iter().any(|f| &f.finger == name) {
+            return Err(GraspError::InvalidOption {
+                what: "free fingers",
+                reason: format!(
+                    "no finger `{name}` (this hand's: {})",
+                    fingers.iter().map(|f| f.finger.as_str()).collect::<Vec<_>>().join(", ")
+                ),
+            });
+        }
+    }
+    for f in &fingers {
+        if !f.contact && !options.free_fingers.contains(&f.finger) {
+            problems.push(format!(
+                "finger `{}` does not touch the tool ({:.2} mm away; contact is ≤ {} mm)",
+                f.finger, f.clearance_mm, options.contact_mm
+            ));
+        }
+    }
+    let palm_clearance_mm = 1e3 * min_on(&[hand.root_link()]);
+    let table_clearance_mm = scene.table_height_world.map(|h| {
+        1e3 * (0..spheres.spheres().len())
+            .map(|i| spheres.center_world(&kin, i).z - h - spheres.spheres()[i].radius)
+            .fold(f64::INFINITY, f64::min)
+    });
+    let penetration_mm = 1e3 * clearance(&spheres, &kin, scene).penetration_m;
+    if penetration_mm > options.max_penetration_mm {
+        problems.push(format!(
+            "the hand pierces the {} by {penetration_mm:.2} mm (at most {} mm allowed)",
+            if table_clearance_mm.is_some_and(|t| -t >= penetration_mm - 1e-9) { "table" } else { "tool" },
+            options.max_penetration_mm
+        ));
+    }
+    for ((name, q), &[lo, hi]) in hand.actuated_names().zip(&grasp.actuated).zip(hand.actuated_limits()) {
+        if *q < lo - 1e-9 || *q > hi + 1e-9 {
+            problems.push(format!("joint `{name}` = {q} is outside its limits [{lo}, {hi}]"));
+        }
+    }
+    let keypoint_mismatch_mm = super::residual_stats(kin.keypoints(), keypoints_world);
+    if keypoint_mismatch_mm.max > options.max_keypoint_mismatch_mm {
+        problems.push(format!(
+            "the keypoints are up to {:.2} mm from those of the stated wrist pose and joints (at most {} mm allowed)",
+            keypoint_mismatch_mm.max, options.max_keypoint_mismatch_mm
+        ));
+    }
+    Ok(DemoCheck { fingers, palm_clearance_mm, table_clearance_mm, penetration_mm, keypoint_mismatch_mm, problems })
 }

@@ -23,6 +23,7 @@ pub mod linalg;
 pub mod penetration;
 pub mod pregrasp;
 pub mod solver;
+pub mod transfer;
 
 #[cfg(test)]
 mod tests;
@@ -33,7 +34,10 @@ use thiserror::Error;
 use crate::hand::{HandKinematics, HandModel};
 
 pub use baselines::{baseline_cg, baseline_wp, BaselineGrasp};
-pub use demo::{close_until_contact, CloseOptions, ClosedGrasp, Demonstration, NamedPoint, PoseFile};
+pub use demo::{
+    check_demonstration, close_until_contact, finger_links, CloseOptions, ClosedGrasp, DemoCheck, DemoCheckOptions,
+    DemoFileError, Demonstration, FingerClearance, NamedPoint, PoseFile, DEMO_DIR,
+};
 pub use penetration::{Clearance, HandSpheres, Scene, ToolCollider};
 pub use pregrasp::{pregrasp, PreGrasp, PreGraspOptions};
 pub use solver::{GraspSolver, PenetrationOptions, SolveOptions};
@@ -125,7 +129,7 @@ impl Grasp {
 }
 
 /// Distance of solved keypoints to their targets.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
 pub struct ResidualStats {
     /// Unweighted mean Euclidean distance, millimetres.
     pub mean: f64,

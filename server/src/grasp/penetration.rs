@@ -173,6 +173,9 @@ struct Part {
     /// Tool-frame bounding box, for culling far queries.
     lo: Vector3<f64>,
     hi: Vector3<f64>,
+    /// Half the box's smallest side: no point inside the part is farther
+    /// than this from its surface.
+    max_depth: f64,
 }
 
 /// The registered tool as a solid: a watertight triangle mesh in its own
@@ -236,7 +239,7 @@ impl ToolCollider {
             }
             let mesh = parry3d::shape::TriMesh::with_flags(vertices, indices, TriMeshFlags::ORIENTED)
                 .map_err(|e| bad(format!("parry refused a part: {e:?}")))?;
-            parts.push(Part { mesh, lo, hi });
+            parts.push(Part { mesh, lo, hi, max_depth: 0.5 * (hi - lo).min() });
         }
         Ok(Self { parts, pose_world })
     }
@@ -265,7 +268,14 @@ impl ToolCollider {
             let q = Vector3::new(proj.point.x as f64, proj.point.y as f64, proj.point.z as f64);
             let d = p - q;
             let dist = d.norm();
-            let sign = if proj.is_inside { -1.0 } else { 1.0 };
+            // Inside/outside comes from pseudo-normals, which a deformed
+            // (registered) mesh with folded or sliver triangles can get wrong
+            // far from the fold. Two facts no solid can break bound that: a
+            // point outside the part's box is outside it, and no inside point
+            // is deeper than half the box's smallest side.
+            let in_box = (p - part.lo).min() >= 0.0 && (part.hi - p).min() >= 0.0;
+            let inside = proj.is_inside && in_box && dist <= part.max_depth + 1e-6;
+            let sign = if inside { -1.0 } else { 1.0 };
             let grad = if dist > 1e-7 {
                 d * (sign / dist)
             } else {

@@ -44,11 +44,19 @@ pub struct PenetrationOptions {
     pub margin_m: f64,
     /// Sphere-cover spacing, as a fraction of each primitive's radius.
     pub sphere_spacing: f64,
+    /// Run each start first on the keypoints alone, then with the
+    /// penetration term from there: a start far from the targets (a CG warm
+    /// start on a longer tool) otherwise meets the tool on its way and is
+    /// pushed out on the wrong side, a local minimum far from the targets.
+    /// Off by default: measured on the Table I instances, a keypoint-only
+    /// optimum that pierces deeply is pushed out worse than a start that
+    /// never entered (mug 1.08 vs 0.93 cm, hammer 3.1 vs 2.7 cm).
+    pub staged: bool,
 }
 
 impl Default for PenetrationOptions {
     fn default() -> Self {
-        Self { enabled: true, weight: 100.0, margin_m: 0.0, sphere_spacing: 0.5 }
+        Self { enabled: true, weight: 100.0, margin_m: 0.0, sphere_spacing: 0.5, staged: false }
     }
 }
 
@@ -214,7 +222,14 @@ impl GraspSolver {
         let mut best: Option<StartResult> = None;
         for k in 0..self.options.starts.max(1) {
             let wrist0 = self.start(k, targets, warm_start, &mut rng);
-            let result = self.run_start(targets, scene, wrist0);
+            let pen = &self.options.penetration;
+            let result = if pen.staged && pen.enabled && !scene.is_empty() {
+                let free = self.run_start(targets, &Scene::default(), wrist0);
+                let r = self.run_start(targets, scene, free.wrist);
+                StartResult { iterations: free.iterations + r.iterations, ..r }
+            } else {
+                self.run_start(targets, scene, wrist0)
+            };
             report.starts += 1;
             report.iterations += result.iterations;
             if best.as_ref().is_none_or(|b| result.cost < b.cost) {

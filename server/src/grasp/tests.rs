@@ -730,3 +730,179 @@ fn noisy_targets_cold_start_finds_the_warm_optimum() {
     );
     assert!(worse <= trials / 50, "{worse} of {trials}");
 }
+
+// ------------------------------------------------- demonstration checks, transfer
+
+/// The cylinder grasp of `close_until_contact_rests_fingers_on_the_tool`:
+/// (hand, wrist, collider, closed grasp).
+fn closed_on_cylinder() -> (HandModel, Isometry3<f64>, ToolCollider, Grasp) {
+    let hand = sih();
+    let wrist =
+        Isometry3::from_parts(Translation3::new(0.1, 0.2, 0.3), UnitQuaternion::from_euler_angles(0.2, -0.5, 0.9));
+    let radius = 0.025;
+    let axis_palm = Isometry3::translation(-0.005, 0.018 + radius + 0.005, 0.17);
+    let tool = ToolCollider::new(&cylinder_x_mesh(radius, 0.07, 64), wrist * axis_palm).unwrap();
+    let scene = Scene { tool: Some(&tool), table_height_world: None };
+    let closed = close_until_contact(&hand, &wrist, &scene, &CloseOptions::default()).unwrap();
+    (hand, wrist, tool, closed.grasp)
+}
+
+#[test]
+fn demonstration_check_reports_contact_penetration_and_mismatch() {
+    let (hand, wrist, tool, grasp) = closed_on_cylinder();
+    let scene = Scene { tool: Some(&tool), table_height_world: None };
+    let kps = grasp.keypoints_world(&hand);
+    // The ring finger shares its drive with the little finger, which stops
+    // first; the thumb does not reach. Index, middle and little touch.
+    let opts = DemoCheckOptions { free_fingers: vec!["rf".into(), "th".into()], ..Default::default() };
+    let check = check_demonstration(&hand, &grasp, &kps, &scene, &opts).unwrap();
+    println!("{check:#?}");
+    assert!(check.ok(), "{:?}", check.problems);
+    assert_eq!(check.fingers.iter().map(|f| f.finger.as_str()).collect::<Vec<_>>(), ["if", "mf", "rf", "lf", "th"]);
+    for f in [&check.fingers[0], &check.fingers[1], &check.fingers[3]] {
+        assert!(f.contact && f.clearance_mm >= 0.0 && f.clearance_mm <= 3.0, "{f:?}");
+        assert!(f.tip_clearance_mm >= f.clearance_mm);
+    }
+    assert!(check.penetration_mm == 0.0 && check.keypoint_mismatch_mm.max < 1e-9);
+    assert!(check.table_clearance_mm.is_none());
+
+    // Keypoints that are not the grasp's own.
+    let mut moved = kps.clone();
+    moved[3].x += 0.005;
+    let c = check_demonstration(&hand, &grasp, &moved, &scene, &opts).unwrap();
+    assert!(!c.ok() && c.problems.iter().any(|p| p.contains("keypoints are up to 5.00 mm")), "{:?}", c.problems);
+
+    // The same hand 4 cm back: no finger touches.
+    let back = Grasp::new(&hand, wrist * Isometry3::translation(0.0, -0.04, 0.0), grasp.actuated.clone());
+    let c = check_demonstration(&hand, &back, &back.keypoints_world(&hand), &scene, &opts).unwrap();
+    assert_eq!(c.problems.len(), 3, "{:?}", c.problems);
+    assert!(c.problems.iter().all(|p| p.contains("does not touch")));
+
+    // Closed further: the fingers pierce.
+    let mut q = grasp.actuated.clone();
+    q[0] -= 0.15;
+    let deep = Grasp::new(&hand, wrist, q);
+    let c = check_demonstration(&hand, &deep, &deep.keypoints_world(&hand), &scene, &opts).unwrap();
+    assert!(c.penetration_mm > 1.0 && c.problems.iter().any(|p| p.contains("pierces the tool")), "{c:?}");
+
+    // A table under the hand is reported and counted.
+    let low = Scene { tool: Some(&tool), table_height_world: Some(1.0) };
+    let c = check_demonstration(&hand, &grasp, &kps, &low, &opts).unwrap();
+    assert!(c.table_clearance_mm.unwrap() < -500.0 && c.problems.iter().any(|p| p.contains("pierces the table")));
+
+    // Bad input is an error, not a verdict.
+    let bad = DemoCheckOptions { free_fingers: vec!["pinky".into()], ..Default::default() };
+    assert!(matches!(check_demonstration(&hand, &grasp, &kps, &scene, &bad), Err(GraspError::InvalidOption { .. })));
+    assert!(matches!(
+        check_demonstration(&hand, &grasp, &kps[..5], &scene, &opts),
+        Err(GraspError::WrongKeypointCount { expected: 12, got: 5 })
+    ));
+}
+
+#[test]
+fn finger_links_follow_the_fingertips() {
+    let hand = sih();
+    let fingers = finger_links(&hand);
+    let names: Vec<Vec<&str>> =
+        fingers.iter().map(|(_, ls)| ls.iter().map(|&l| hand.links()[l].name.as_str()).collect()).collect();
+    assert_eq!(names[0], ["if_distal", "if_proximal"]);
+    assert_eq!(names[4], ["th_distal", "th_inter", "th_proximal"]);
+}
+
+#[test]
+fn demonstration_files_load_and_fail_clearly() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("none.json");
+    assert!(matches!(Demonstration::load(&missing), Err(DemoFileError::Io { .. })));
+    let bad = dir.path().join("bad.json");
+    std::fs::write(&bad, r#"{"hand": "sih_right", "tool": "x", "extra": 1}"#).unwrap();
+    let e = Demonstration::load(&bad).unwrap_err();
+    assert!(matches!(e, DemoFileError::Json { .. }) && e.to_string().contains("bad.json"), "{e}");
+    // The bundled demonstrations are valid files for the bundled hand.
+    let hand = sih();
+    for c in crate::tools::Category::ALL {
+        let demo = Demonstration::builtin(c).unwrap();
+        assert_eq!(demo.hand, hand.name());
+        assert_eq!(demo.keypoints(&hand).unwrap().len(), 12);
+        demo.grasp_at(&hand, &Isometry3::identity()).unwrap();
+    }
+}
+
+#[test]
+fn similarity_carries_points_and_frames() {
+    use super::transfer::Similarity;
+    let s = Similarity {
+        rotation: UnitQuaternion::from_euler_angles(0.3, -0.2, 1.1),
+        translation: Vector3::new(0.1, -0.4, 0.2),
+        scale: 1.25,
+    };
+    let frame =
+        Isometry3::from_parts(Translation3::new(0.05, 0.02, -0.03), UnitQuaternion::from_euler_angles(1.0, 0.1, 0.2));
+    let carried = s.carry(&frame);
+    // The frame's origin moves as a point; its axes turn with the rotation.
+    assert!((carried.translation.vector - s.apply(&Point3::from(frame.translation.vector)).coords).norm() < 1e-12);
+    assert!(carried.rotation.angle_to(&(s.rotation * frame.rotation)) < 1e-12);
+    // Without scale, carrying is composing with the rigid part.
+    let rigid = Similarity { scale: 1.0, ..s };
+    assert!((rigid.carry(&frame).to_homogeneous() - (rigid.rigid() * frame).to_homogeneous()).abs().max() < 1e-12);
+    let p = Point3::new(0.3, 0.1, -0.2);
+    assert!((Similarity::identity().apply(&p) - p).norm() == 0.0);
+}
+
+#[test]
+fn transferring_onto_the_demonstration_tool_returns_the_demonstration() {
+    use super::transfer::{solve_transferred, Similarity, TransferredTool};
+    let (hand, wrist, _, grasp) = closed_on_cylinder();
+    // The cylinder in its own frame is "the canonical tool"; the demonstration
+    // is recorded there, and the "registered" tool is the same cylinder moved.
+    let radius = 0.025;
+    let tool_pose = wrist * Isometry3::translation(-0.005, 0.018 + radius + 0.005, 0.17);
+    let demo = Demonstration::new(&hand, "test/cylinder", &grasp, &tool_pose);
+    let motion = Similarity {
+        rotation: UnitQuaternion::from_euler_angles(0.0, 0.0, 0.7),
+        translation: Vector3::new(0.3, -0.1, 0.05),
+        scale: 1.0,
+    };
+    let mesh = cylinder_x_mesh(radius, 0.07, 64);
+    let moved_mesh = TriMesh {
+        vertices: mesh.vertices.iter().map(|p| motion.apply(p)).collect(),
+        triangles: mesh.triangles.clone(),
+        parts: vec![],
+    };
+    let targets: Vec<Point3<f64>> = demo.keypoints(&hand).unwrap().iter().map(|p| motion.apply(p)).collect();
+    let tool = TransferredTool {
+        pose: motion,
+        targets: targets.clone(),
+        collider: ToolCollider::new(&moved_mesh, Isometry3::identity()).unwrap(),
+        mesh: moved_mesh,
+        elapsed_ms: 0.0,
+    };
+    let mut solver = GraspSolver::new(&hand, SolveOptions::default());
+    let out = solve_transferred(&mut solver, &demo, &tool, None, &PreGraspOptions::default()).unwrap();
+    // The warm start (= CG) is already exact: same keypoints, nothing pierced.
+    assert!(out.cg.task_space_distance_cm < 1e-6, "{}", out.cg.task_space_distance_cm);
+    assert!(out.wp.task_space_distance_cm < 1e-6);
+    assert!(out.task_space_distance_cm < 1e-4 && out.report.penetration_mm < 0.01, "{:?}", out.report);
+    assert!(out.pregrasp.collision_free);
+    let expected = motion.rigid() * tool_pose.inverse() * grasp.wrist_pose_world;
+    assert!((out.warm_start.wrist_pose_world.to_homogeneous() - expected.to_homogeneous()).abs().max() < 1e-9);
+    // A demonstration that does not fit the hand is refused.
+    let mut wrong = demo.clone();
+    wrong.actuated.remove("palm_to_if_proximal");
+    assert!(solve_transferred(&mut solver, &wrong, &tool, None, &PreGraspOptions::default()).is_err());
+}
+
+#[test]
+fn an_inside_out_part_is_not_inside_far_away() {
+    // All triangles flipped: pseudo-normals call every point "inside". The
+    // part's box bounds that: far points are outside, whatever the winding says.
+    let mut m = box_mesh(Vector3::new(0.02, 0.03, 0.04));
+    for t in &mut m.triangles {
+        t.swap(1, 2);
+    }
+    let tool = ToolCollider::new(&m, Isometry3::identity()).unwrap();
+    for p in [Point3::new(0.2, 0.0, 0.0), Point3::new(0.0, -0.1, 0.05), Point3::new(0.05, 0.05, 0.05)] {
+        let (sd, _) = tool.signed_distance(&p, f64::INFINITY).unwrap();
+        assert!(sd > 0.0, "{p:?}: {sd}");
+    }
+}

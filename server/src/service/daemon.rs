@@ -11,7 +11,7 @@
 //! client holds at most `max_in_flight_per_client` requests.
 
 use super::config::{Config, Waiting};
-use super::engine::{Engine, Status, GRASP_AVAILABLE};
+use super::engine::{Engine, Status};
 use super::stats::{rss_bytes, stats_json, Stats};
 use graspd_proto::{self as proto, Method, NoPayload, Point, RequestHeader, ResponseHeader, StatusCode};
 use iceoryx2::active_request::ActiveRequest;
@@ -286,8 +286,8 @@ impl Shared {
         if h.protocol_version != proto::PROTOCOL_VERSION {
             return Err(Status::invalid(format!("protocol_version {}; this daemon speaks {}", h.protocol_version, proto::PROTOCOL_VERSION)));
         }
-        if h.flags != 0 {
-            return Err(Status::invalid(format!("flags {:#x}: no flags are defined (must be 0)", h.flags)));
+        if h.flags & !proto::flags::ALL != 0 {
+            return Err(Status::invalid(format!("flags {:#x}: unknown bits (known: {:#x})", h.flags, proto::flags::ALL)));
         }
         if Self::deadline_passed(h) {
             return Err(Status::new(StatusCode::DeadlineExceeded, "deadline passed before the request was read"));
@@ -323,14 +323,9 @@ impl Shared {
             if !h.table_z_m.is_finite() {
                 return Err(Status::invalid("table_z_m is not finite"));
             }
-            if !(h.pregrasp_backoff_m.is_finite() && (0.0..=0.5).contains(&h.pregrasp_backoff_m)) {
-                return Err(Status::invalid(format!("pregrasp_backoff_m {}: 0 (default) to 0.5 m", h.pregrasp_backoff_m)));
-            }
-            if !(h.pregrasp_joint_fraction.is_finite() && (0.0..=1.0).contains(&h.pregrasp_joint_fraction)) {
-                return Err(Status::invalid(format!("pregrasp_joint_fraction {}: 0 (default) to 1", h.pregrasp_joint_fraction)));
-            }
-            if !GRASP_AVAILABLE {
-                return Err(Status::new(StatusCode::FailedPrecondition, super::engine::GRASP_UNAVAILABLE_MESSAGE));
+            super::engine::pregrasp_options(h)?;
+            if let Err(e) = &self.engine.categories[category].grasp {
+                return Err(Status::new(StatusCode::FailedPrecondition, format!("grasp not available for {name}: {e}")));
             }
         }
         Ok(category)
@@ -368,7 +363,7 @@ impl Shared {
         r.max_points = self.config.max_points;
         r.max_in_flight_per_client = self.config.max_in_flight_per_client;
         r.workers = self.config.worker_count() as u32;
-        r.grasp_available = GRASP_AVAILABLE as u32;
+        r.grasp_available = self.engine.grasp_available() as u32;
         r.server_version = proto::str_to_text(env!("CARGO_PKG_VERSION"));
         r
     }

@@ -1,8 +1,12 @@
 //! The engine behind the service: loaded categories, and the conversion of
 //! wire requests into engine calls and of engine results into wire bodies.
 
+use crate::geometry::TriMesh;
+use crate::grasp::transfer::{solve_transferred, TransferredTool};
+use crate::grasp::{Demonstration, GraspSolver, PreGraspOptions, SolveOptions};
+use crate::hand::HandModel;
 use crate::shape::{builtin, RegisterOptions, Registrar};
-use crate::tools::Category;
+use crate::tools::{Category, Split};
 use graspd_proto::{self as proto, StatusCode};
 use nalgebra::Point3;
 use std::path::Path;
@@ -24,20 +28,28 @@ impl Status {
     }
 }
 
-/// Whether this build serves Grasp. The hand grasp transfer (registration →
-/// demonstration transfer → grasp → pre-grasp) is not part of the engine yet,
-/// so Grasp is answered FAILED_PRECONDITION rather than with made-up results.
-pub const GRASP_AVAILABLE: bool = false;
-pub const GRASP_UNAVAILABLE_MESSAGE: &str = "grasp not available in this build";
+/// What Grasp needs of a category beyond its shape space: the demonstration
+/// (canonical frame) and the canonical mesh it is carried on.
+pub struct GraspAssets {
+    pub demo: Demonstration,
+    pub demo_keypoints: Vec<Point3<f64>>,
+    pub canonical_mesh: TriMesh,
+}
 
 pub struct LoadedCategory {
     pub category: Category,
     pub registrar: Registrar,
     pub info: proto::CategoryInfo,
+    /// Err: why Grasp is not served for this category (answered FAILED_PRECONDITION).
+    pub grasp: Result<GraspAssets, String>,
 }
 
 pub struct Engine {
     pub categories: Vec<LoadedCategory>,
+    /// The hand Grasp solves for; Err: why Grasp is not served at all.
+    pub hand: Result<HandModel, String>,
+    actuated_names: Vec<proto::Name>,
+    joint_names: Vec<proto::Name>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -52,6 +64,23 @@ impl Engine {
     pub fn load(names: &[String], cache_dir: &Path) -> Result<(Engine, Vec<(String, f64)>), EngineError> {
         let mut categories = Vec::new();
         let mut times = Vec::new();
+        let hand = HandModel::default_sih().map_err(|e| format!("hand model: {e}")).and_then(|h| {
+            if h.num_actuated() > proto::MAX_JOINTS || h.moving_joints().len() > proto::MAX_JOINTS {
+                Err(format!("the hand has more than {} joints; the protocol carries {}", proto::MAX_JOINTS, proto::MAX_JOINTS))
+            } else {
+                Ok(h)
+            }
+        });
+        if let Err(e) = &hand {
+            tracing::warn!("Grasp will not be served: {e}");
+        }
+        let (actuated_names, joint_names) = match &hand {
+            Ok(h) => (
+                h.actuated_names().map(proto::str_to_text).collect(),
+                h.moving_joints().iter().map(|&j| proto::str_to_text(&h.joints()[j].name)).collect(),
+            ),
+            Err(_) => (Vec::new(), Vec::new()),
+        };
         for name in names {
             let t0 = Instant::now();
             let err = |reason: String| EngineError::Category { name: name.clone(), reason };
@@ -72,10 +101,22 @@ impl Engine {
             }
             info.canonical_frame = proto::str_to_text(category.canonical_frame());
             let registrar = Registrar::new(space);
+            let grasp = match &hand {
+                Ok(h) => grasp_assets(category, h),
+                Err(e) => Err(e.clone()),
+            };
+            if let Err(e) = &grasp {
+                tracing::warn!("Grasp will not be served for {name}: {e}");
+            }
             times.push((name.clone(), 1e3 * t0.elapsed().as_secs_f64()));
-            categories.push(LoadedCategory { category, registrar, info });
+            categories.push(LoadedCategory { category, registrar, info, grasp });
         }
-        Ok((Engine { categories }, times))
+        Ok((Engine { categories, hand, actuated_names, joint_names }, times))
+    }
+
+    /// Whether any category is served by Grasp.
+    pub fn grasp_available(&self) -> bool {
+        self.hand.is_ok() && self.categories.iter().any(|c| c.grasp.is_ok())
     }
 
     pub fn find(&self, name: &str) -> Option<usize> {
@@ -96,10 +137,108 @@ impl Engine {
         Ok(proto::RegisterResponse { registration: registration_to_wire(&reg, points.len()) })
     }
 
-    /// Grasp: not served by this build (see [`GRASP_AVAILABLE`]).
-    pub fn grasp(&self, _category: usize, _points: &[proto::Point], _header: &proto::RequestHeader) -> Result<proto::GraspResponse, Status> {
-        Err(Status::new(StatusCode::FailedPrecondition, GRASP_UNAVAILABLE_MESSAGE))
+    /// Grasp: registration, the category's demonstration carried onto the
+    /// registered shape, the hand solved onto it, and the pre-grasp (what
+    /// `graspd grasp` does, in one call).
+    pub fn grasp(&self, category: usize, points: &[proto::Point], header: &proto::RequestHeader) -> Result<proto::GraspResponse, Status> {
+        let c = self.categories.get(category).ok_or_else(|| Status::new(StatusCode::Internal, "category index out of range"))?;
+        let hand = self.hand.as_ref().map_err(|e| Status::new(StatusCode::FailedPrecondition, format!("grasp not available: {e}")))?;
+        let assets = c.grasp.as_ref().map_err(|e| Status::new(StatusCode::FailedPrecondition, format!("grasp not available for {}: {e}", c.category.name())))?;
+        let cloud = convert_cloud(points)?;
+        let opts = register_options(header)?;
+        let pre = pregrasp_options(header)?;
+        let reg = c.registrar.register(&cloud, &opts).map_err(|e| Status::invalid(format!("cannot register the cloud: {e}")))?;
+        let tool = TransferredTool::from_registration(&c.registrar, &reg, &assets.demo_keypoints, &assets.canonical_mesh)
+            .map_err(|e| Status::invalid(format!("cannot carry the demonstration onto the registered shape: {e}")))?;
+        let mut warnings = 0;
+        if !reg.fit.confident {
+            warnings |= proto::grasp_warning::REGISTRATION_NOT_CONFIDENT;
+        }
+        let z_up = opts.up.is_some_and(|u| {
+            let n = (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]).sqrt();
+            u[2] / n > 1.0 - 1e-9
+        });
+        let table_z = match header.table_mode {
+            proto::table_mode::NONE => None,
+            proto::table_mode::GIVEN => Some(header.table_z_m as f64),
+            _ if z_up => Some(cloud.iter().map(|p| p.z).fold(f64::INFINITY, f64::min).min(tool.lowest_z())),
+            _ => {
+                warnings |= proto::grasp_warning::NO_TABLE_FRAME_NOT_Z_UP;
+                None
+            }
+        };
+        let mut solver = GraspSolver::new(hand, SolveOptions { seed: header.seed, ..SolveOptions::default() });
+        let out = solve_transferred(&mut solver, &assets.demo, &tool, table_z, &pre).map_err(|e| Status::invalid(format!("cannot solve the grasp: {e}")))?;
+        if !out.pregrasp.collision_free {
+            warnings |= proto::grasp_warning::PREGRASP_IN_COLLISION;
+        }
+        let mut r = proto::GraspResponse::zeroed();
+        r.registration = registration_to_wire(&reg, points.len());
+        r.grasp = hand_to_wire(&out.grasp);
+        r.pregrasp = hand_to_wire(&out.pregrasp.grasp);
+        for (slot, n) in r.actuated_names.iter_mut().zip(&self.actuated_names) {
+            *slot = *n;
+        }
+        for (slot, n) in r.joint_names.iter_mut().zip(&self.joint_names) {
+            *slot = *n;
+        }
+        r.actuated_count = self.actuated_names.len() as u32;
+        r.joint_count = self.joint_names.len() as u32;
+        r.task_space_distance_m = out.task_space_distance_cm * 1e-2;
+        r.residual_mean_m = out.report.residual_mm.mean * 1e-3;
+        r.residual_max_m = out.report.residual_mm.max * 1e-3;
+        r.penetration_m = out.report.penetration_mm * 1e-3;
+        r.pregrasp_min_clearance_m = if out.pregrasp.min_clearance_m.is_finite() { out.pregrasp.min_clearance_m } else { f64::MAX };
+        r.pregrasp_collision_free = out.pregrasp.collision_free as u32;
+        r.table_used = table_z.is_some() as u32;
+        r.table_z_m = table_z.unwrap_or(0.0);
+        r.warnings = warnings;
+        Ok(r)
     }
+}
+
+fn grasp_assets(category: Category, hand: &HandModel) -> Result<GraspAssets, String> {
+    let demo = Demonstration::builtin(category).map_err(|e| format!("demonstration: {e}"))?;
+    let demo_keypoints = demo.keypoints(hand).map_err(|e| format!("demonstration: {e}"))?;
+    let canonical_mesh = crate::tools::family(category)
+        .map_err(|e| e.to_string())?
+        .into_iter()
+        .find(|i| i.split == Split::Canonical)
+        .ok_or("the family has no canonical instance")?
+        .mesh;
+    Ok(GraspAssets { demo, demo_keypoints, canonical_mesh })
+}
+
+fn hand_to_wire(g: &crate::grasp::Grasp) -> proto::HandConfiguration {
+    let mut h = proto::HandConfiguration::zeroed();
+    let q = g.wrist_pose_world.rotation.coords;
+    h.rotation_cloud_from_wrist_xyzw = [q.x, q.y, q.z, q.w];
+    let t = g.wrist_pose_world.translation.vector;
+    h.translation_cloud_from_wrist_m = [t.x, t.y, t.z];
+    for (slot, v) in h.actuated.iter_mut().zip(&g.actuated) {
+        *slot = *v;
+    }
+    for (slot, v) in h.joints.iter_mut().zip(&g.joints) {
+        *slot = *v;
+    }
+    h
+}
+
+/// Pre-grasp options from the header (0 = the engine's default).
+pub fn pregrasp_options(h: &proto::RequestHeader) -> Result<PreGraspOptions, Status> {
+    let d = PreGraspOptions::default();
+    let (b, f) = (h.pregrasp_backoff_m, h.pregrasp_joint_fraction);
+    if !(b.is_finite() && (0.0..=0.5).contains(&b)) {
+        return Err(Status::invalid(format!("pregrasp_backoff_m {b}: 0 (default) to 0.5 m")));
+    }
+    if !(f.is_finite() && (0.0..=1.0).contains(&f)) {
+        return Err(Status::invalid(format!("pregrasp_joint_fraction {f}: 0 (default) to 1")));
+    }
+    Ok(PreGraspOptions {
+        backoff_m: if b == 0.0 { d.backoff_m } else { b as f64 },
+        joint_fraction: if f == 0.0 { d.joint_fraction } else { f as f64 },
+        ..d
+    })
 }
 
 /// f32 wire points → f64 engine points; rejects NaN/Inf. The caller's memory
@@ -134,7 +273,19 @@ pub fn register_options(h: &proto::RequestHeader) -> Result<RegisterOptions, Sta
     } else {
         Some([x as f64, y as f64, z as f64])
     };
-    Ok(RegisterOptions { up, seed: h.seed, ..Default::default() })
+    if h.flags & !proto::flags::ALL != 0 {
+        return Err(Status::invalid(format!("flags {:#x}: unknown bits", h.flags)));
+    }
+    let viewpoint = if h.flags & proto::flags::VIEWPOINT != 0 {
+        let [x, y, z] = h.viewpoint_in_cloud_m;
+        if !(x.is_finite() && y.is_finite() && z.is_finite()) {
+            return Err(Status::invalid("viewpoint_in_cloud_m is not finite"));
+        }
+        Some([x as f64, y as f64, z as f64])
+    } else {
+        None
+    };
+    Ok(RegisterOptions { up, viewpoint, seed: h.seed, ..Default::default() })
 }
 
 pub fn registration_to_wire(reg: &crate::shape::Registration, points: usize) -> proto::Registration {
@@ -154,6 +305,7 @@ pub fn registration_to_wire(reg: &crate::shape::Registration, points: usize) -> 
     r.latent_dim = reg.latent.len().min(proto::MAX_LATENT) as u32;
     r.keypoint_count = reg.keypoints.len().min(proto::MAX_KEYPOINTS) as u32;
     r.confident = reg.fit.confident as u32;
+    r.ambiguous_pose = reg.fit.ambiguous_pose as u32;
     r.points = points.min(u32::MAX as usize) as u32;
     for (slot, k) in r.keypoints.iter_mut().zip(&reg.keypoints) {
         slot.name = proto::str_to_text(&k.name);

@@ -9,7 +9,7 @@
 //!   negligible (e^{-32} at 8σ); a uniform grid over X finds the pairs that
 //!   matter (see `grid.rs` for why not a k-d tree).
 
-use super::fastexp::exp_neg;
+use super::fastexp::{exp_neg, exp_neg_f32};
 use super::grid::RadiusGrid;
 
 pub type P3 = [f64; 3];
@@ -42,10 +42,19 @@ pub struct EStep {
     x_radius: f64,
     /// Pairs farther than this many σ are dropped once that prunes most pairs.
     pub cutoff_sigmas: f64,
+    /// Truncate when the cutoff radius is below this fraction of the data's
+    /// bounding radius; below it, the pairs that matter are few enough that
+    /// finding them beats evaluating all of them.
+    pub truncate_below: f64,
+    /// Evaluate the dense sums in f32 (twice the SIMD lanes). For fits that
+    /// need no more (registration); CPD keeps f64 to agree with its peers.
+    pub single_precision: bool,
+    f32buf: F32Buffers,
     // Reused buffers.
     ys: [Vec<f64>; 3],
     row: Vec<f64>,
     acc: [Vec<f64>; 4],
+    pi: Vec<f64>,
     den: Vec<f64>,
     pairs: Vec<(u32, u32, f64)>,
 }
@@ -55,7 +64,7 @@ impl EStep {
         let n = x.len().max(1) as f64;
         let c = x.iter().fold([0.0; 3], |a, p| [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]);
         let x_radius = x.iter().map(|p| dist2(p, &c)).fold(0.0, f64::max).sqrt();
-        Self { x: x.to_vec(), grid: RadiusGrid::default(), grid_radius: 0.0, x_radius, cutoff_sigmas: CUTOFF_SIGMAS, ys: Default::default(), row: Vec::new(), acc: Default::default(), den: Vec::new(), pairs: Vec::new() }
+        Self { x: x.to_vec(), grid: RadiusGrid::default(), grid_radius: 0.0, x_radius, cutoff_sigmas: CUTOFF_SIGMAS, truncate_below: 0.5, single_precision: false, f32buf: F32Buffers::default(), ys: Default::default(), row: Vec::new(), acc: Default::default(), pi: Vec::new(), den: Vec::new(), pairs: Vec::new() }
     }
 
     pub fn data(&self) -> &[P3] {
@@ -65,6 +74,13 @@ impl EStep {
     /// Computes the posteriors of `y` (the moving GMM centroids) into `out`.
     /// `w` is the outlier weight in [0, 1).
     pub fn run(&mut self, y: &[P3], sigma2: f64, w: f64, out: &mut Posteriors) {
+        self.run_weighted(y, None, sigma2, w, out)
+    }
+
+    /// As `run`, with mixing weights of the centroids (mean 1; CPD's equal
+    /// weights are all ones). A registration gives centroids the camera cannot
+    /// see a small weight: they cannot have produced an observation.
+    pub fn run_weighted(&mut self, y: &[P3], weights: Option<&[f64]>, sigma2: f64, w: f64, out: &mut Posteriors) {
         let (m, n) = (y.len(), self.x.len());
         out.p1.clear();
         out.p1.resize(m, 0.0);
@@ -80,36 +96,64 @@ impl EStep {
         let c = outlier_constant(sigma2, w, m, n);
         let cutoff = self.cutoff_sigmas * sigma2.sqrt();
         // Truncate when the cutoff ball holds a small share of the data volume.
-        if n >= 64 && cutoff < 0.5 * self.x_radius {
-            self.run_truncated(y, sigma2, c, cutoff * cutoff, out);
+        if n >= 64 && cutoff < self.truncate_below * self.x_radius {
+            self.run_truncated(y, weights, sigma2, c, cutoff * cutoff, out);
         } else {
-            self.run_dense(y, sigma2, c, out);
+            self.run_dense(y, weights, sigma2, c, out);
         }
         out.np = out.p1.iter().sum();
         out.neg_log_likelihood += n as f64 * 1.5 * sigma2.ln();
     }
 
-    fn run_dense(&mut self, y: &[P3], sigma2: f64, c: f64, out: &mut Posteriors) {
+    fn run_dense(&mut self, y: &[P3], weights: Option<&[f64]>, sigma2: f64, c: f64, out: &mut Posteriors) {
         let m = y.len();
+        self.pi.clear();
+        match weights {
+            Some(wt) => self.pi.extend_from_slice(&wt[..m]),
+            None => self.pi.resize(m, 1.0),
+        }
         for (d, ys) in self.ys.iter_mut().enumerate() {
             ys.clear();
             ys.extend(y.iter().map(|p| p[d]));
         }
         self.row.resize(m, 0.0);
         let k = -0.5 / sigma2;
-        let (ys, row, x, acc) = (&self.ys, &mut self.row, &self.x, &mut self.acc);
+        if self.single_precision {
+            let b = &mut self.f32buf;
+            if b.x.len() != self.x.len() {
+                b.x = self.x.iter().map(|p| [p[0] as f32, p[1] as f32, p[2] as f32]).collect();
+            }
+            for (d, ys) in b.ys.iter_mut().enumerate() {
+                ys.clear();
+                ys.extend(y.iter().map(|p| p[d] as f32));
+            }
+            b.pi.clear();
+            b.pi.extend(self.pi.iter().map(|&w| w as f32));
+            b.row.resize(m, 0.0);
+            #[cfg(target_arch = "x86_64")]
+            {
+                if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                    // SAFETY: the CPU supports the features the function is compiled for.
+                    unsafe { dense_rows_f32_avx2(b, m, k as f32, c, out) };
+                    return;
+                }
+            }
+            dense_rows_f32(b, m, k as f32, c, out);
+            return;
+        }
+        let (ys, row, x, acc, pi) = (&self.ys, &mut self.row, &self.x, &mut self.acc, &self.pi);
         #[cfg(target_arch = "x86_64")]
         {
             if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
                 // SAFETY: the CPU supports the features the function is compiled for.
-                unsafe { dense_rows_avx2(x, ys, row, acc, m, k, c, out) };
+                unsafe { dense_rows_avx2(x, ys, pi, row, acc, m, k, c, out) };
                 return;
             }
         }
-        dense_rows(x, ys, row, acc, m, k, c, out);
+        dense_rows(x, ys, pi, row, acc, m, k, c, out);
     }
 
-    fn run_truncated(&mut self, y: &[P3], sigma2: f64, c: f64, cutoff2: f64, out: &mut Posteriors) {
+    fn run_truncated(&mut self, y: &[P3], weights: Option<&[f64]>, sigma2: f64, c: f64, cutoff2: f64, out: &mut Posteriors) {
         let radius = cutoff2.sqrt();
         // Rebuild when σ has shrunk enough that the cells hold far too much, or grown past them.
         if radius > self.grid_radius || radius < 0.5 * self.grid_radius {
@@ -122,8 +166,9 @@ impl EStep {
         self.den.resize(self.x.len(), 0.0);
         let (grid, x, den, pairs) = (&self.grid, &self.x, &mut self.den, &mut self.pairs);
         for (i, yi) in y.iter().enumerate() {
+            let wi = weights.map_or(1.0, |w| w[i]);
             grid.for_each_within(x, yi, cutoff2, |j, d2| {
-                let e = exp_neg(k * d2);
+                let e = wi * exp_neg(k * d2);
                 den[j as usize] += e;
                 pairs.push((i as u32, j, e));
             });
@@ -150,8 +195,9 @@ impl EStep {
 /// every loop vectorises: structure-of-arrays accumulators (PX as three
 /// columns, not [f64; 3] rows) and a four-way partial sum for the row total.
 #[inline(always)]
-fn dense_rows(x: &[P3], ys: &[Vec<f64>; 3], row: &mut [f64], acc: &mut [Vec<f64>; 4], m: usize, k: f64, c: f64, out: &mut Posteriors) {
-    let (yx, yy, yz) = (&ys[0][..m], &ys[1][..m], &ys[2][..m]);
+#[allow(clippy::too_many_arguments)]
+fn dense_rows(x: &[P3], ys: &[Vec<f64>; 3], pi: &[f64], row: &mut [f64], acc: &mut [Vec<f64>; 4], m: usize, k: f64, c: f64, out: &mut Posteriors) {
+    let (yx, yy, yz, pi) = (&ys[0][..m], &ys[1][..m], &ys[2][..m], &pi[..m]);
     for a in acc.iter_mut() {
         a.clear();
         a.resize(m, 0.0);
@@ -161,9 +207,9 @@ fn dense_rows(x: &[P3], ys: &[Vec<f64>; 3], row: &mut [f64], acc: &mut [Vec<f64>
     let mut nll = 0.0;
     for (j, xn) in x.iter().enumerate() {
         let row = &mut row[..m];
-        for (((r, a), b), c) in row.iter_mut().zip(yx).zip(yy).zip(yz) {
+        for ((((r, a), b), c), w) in row.iter_mut().zip(yx).zip(yy).zip(yz).zip(pi) {
             let (dx, dy, dz) = (xn[0] - a, xn[1] - b, xn[2] - c);
-            *r = exp_neg(k * (dx * dx + dy * dy + dz * dz));
+            *r = w * exp_neg(k * (dx * dx + dy * dy + dz * dz));
         }
         let mut part = [0.0f64; 4];
         let chunks = row.chunks_exact(4);
@@ -197,8 +243,71 @@ fn dense_rows(x: &[P3], ys: &[Vec<f64>; 3], row: &mut [f64], acc: &mut [Vec<f64>
 /// about 3× the baseline x86-64 build. Chosen at run time, so one binary runs everywhere.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn dense_rows_avx2(x: &[P3], ys: &[Vec<f64>; 3], row: &mut [f64], acc: &mut [Vec<f64>; 4], m: usize, k: f64, c: f64, out: &mut Posteriors) {
-    dense_rows(x, ys, row, acc, m, k, c, out)
+#[allow(clippy::too_many_arguments)]
+unsafe fn dense_rows_avx2(x: &[P3], ys: &[Vec<f64>; 3], pi: &[f64], row: &mut [f64], acc: &mut [Vec<f64>; 4], m: usize, k: f64, c: f64, out: &mut Posteriors) {
+    dense_rows(x, ys, pi, row, acc, m, k, c, out)
+}
+
+#[derive(Default)]
+struct F32Buffers {
+    x: Vec<[f32; 3]>,
+    ys: [Vec<f32>; 3],
+    pi: Vec<f32>,
+    row: Vec<f32>,
+    acc: [Vec<f32>; 4],
+}
+
+/// `dense_rows` in single precision; per-point sums stay in f64.
+#[inline(always)]
+fn dense_rows_f32(b: &mut F32Buffers, m: usize, k: f32, c: f64, out: &mut Posteriors) {
+    let F32Buffers { x, ys, pi, row, acc } = b;
+    let (yx, yy, yz, pi) = (&ys[0][..m], &ys[1][..m], &ys[2][..m], &pi[..m]);
+    for a in acc.iter_mut() {
+        a.clear();
+        a.resize(m, 0.0);
+    }
+    let [p1, px0, px1, px2] = acc;
+    let (p1, px0, px1, px2) = (&mut p1[..m], &mut px0[..m], &mut px1[..m], &mut px2[..m]);
+    let mut nll = 0.0;
+    for (j, xn) in x.iter().enumerate() {
+        let row = &mut row[..m];
+        for ((((r, a), bb), cc), w) in row.iter_mut().zip(yx).zip(yy).zip(yz).zip(pi) {
+            let (dx, dy, dz) = (xn[0] - a, xn[1] - bb, xn[2] - cc);
+            *r = w * exp_neg_f32(k * (dx * dx + dy * dy + dz * dz));
+        }
+        let mut part = [0.0f32; 8];
+        let chunks = row.chunks_exact(8);
+        let tail: f32 = chunks.remainder().iter().sum();
+        for ch in chunks {
+            for l in 0..8 {
+                part[l] += ch[l];
+            }
+        }
+        let sum = part.iter().map(|&v| v as f64).sum::<f64>() + tail as f64;
+        let den = sum + c;
+        nll -= den.ln();
+        let inv = 1.0 / den;
+        out.pt1[j] = sum * inv;
+        let inv32 = inv as f32;
+        let (w0, w1, w2) = (xn[0] * inv32, xn[1] * inv32, xn[2] * inv32);
+        for ((((r, a), bb), cc), d) in row.iter().zip(p1.iter_mut()).zip(px0.iter_mut()).zip(px1.iter_mut()).zip(px2.iter_mut()) {
+            *a += r * inv32;
+            *bb += r * w0;
+            *cc += r * w1;
+            *d += r * w2;
+        }
+    }
+    for i in 0..m {
+        out.p1[i] = p1[i] as f64;
+        out.px[i] = [px0[i] as f64, px1[i] as f64, px2[i] as f64];
+    }
+    out.neg_log_likelihood += nll;
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn dense_rows_f32_avx2(b: &mut F32Buffers, m: usize, k: f32, c: f64, out: &mut Posteriors) {
+    dense_rows_f32(b, m, k, c, out)
 }
 
 /// The uniform outlier term of CPD: (2πσ²)^{3/2} · w/(1−w) · M/N.
@@ -286,6 +395,16 @@ mod tests {
         let mut out = Posteriors::default();
         e.run(&y, 0.05, 0.1, &mut out);
         assert_close(&out, &reference(&x, &y, 0.05, 0.1), 1e-10);
+    }
+
+    #[test]
+    fn single_precision_matches_the_textbook_e_step() {
+        let (x, y) = (cloud(300, 5), cloud(200, 6));
+        let mut e = EStep::new(&x);
+        e.single_precision = true;
+        let mut out = Posteriors::default();
+        e.run(&y, 0.05, 0.1, &mut out);
+        assert_close(&out, &reference(&x, &y, 0.05, 0.1), 1e-4);
     }
 
     #[test]

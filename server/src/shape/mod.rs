@@ -5,6 +5,7 @@ pub mod builtin;
 pub mod cpd;
 pub mod estep;
 pub mod fastexp;
+pub mod freespace;
 pub mod grid;
 pub mod kernel;
 pub mod register;

@@ -17,6 +17,7 @@
 
 use super::cpd::{weighted_similarity, Normalization};
 use super::estep::{dist2, initial_sigma2, EStep, Posteriors, P3};
+use super::freespace::FreeSpace;
 use super::space::{LinearModel, NamedPoint, ShapeSpace};
 use faer::prelude::*;
 use faer::Side;
@@ -45,6 +46,10 @@ pub enum RegisterError {
 pub struct RegisterOptions {
     /// The world's up direction in the cloud's frame, if known (a table prior).
     pub up: Option<[f64; 3]>,
+    /// The camera's origin in the cloud's frame, if known (the origin for a
+    /// cloud in the camera frame). Model points facing away from it get a
+    /// small mixing weight: they cannot have produced an observation.
+    pub viewpoint: Option<[f64; 3]>,
     /// Estimate a uniform scale on top of the latent shape.
     pub estimate_scale: bool,
     /// Fit the latent shape (false: the undeformed mean shape, pose only).
@@ -68,6 +73,8 @@ pub struct RegisterOptions {
     pub fine_iters: usize,
     /// EM stops when the relative change of the negative log-likelihood falls below this.
     pub tol: f64,
+    /// Yaw hypotheses of the upright tool when `up` is known.
+    pub yaws: usize,
     /// Hypotheses kept from the coarse stage for the race at full resolution.
     pub keep: usize,
     /// Iterations of each hypothesis in that race, and the observed points it uses.
@@ -80,6 +87,7 @@ impl Default for RegisterOptions {
     fn default() -> Self {
         Self {
             up: Some([0.0, 0.0, 1.0]),
+            viewpoint: None,
             estimate_scale: true,
             fit_latent: true,
             scale_range: (0.6, 1.6),
@@ -92,6 +100,7 @@ impl Default for RegisterOptions {
             fine_points: 400,
             fine_iters: 40,
             tol: 1e-7,
+            yaws: 6,
             keep: 4,
             race_iters: 10,
             race_points: 200,
@@ -114,6 +123,10 @@ pub struct FitQuality {
     pub inlier_mm: f64,
     /// false when the cloud is not explained by this category (another tool, a table, noise).
     pub confident: bool,
+    /// Another pose, at least 30° away, explains the view almost as well (a
+    /// mug whose handle is hidden): the orientation is not determined by this
+    /// view; take another.
+    pub ambiguous_pose: bool,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -146,6 +159,10 @@ pub struct StageTimes {
 
 /// The model point sets used by a fit, each affine in the latent.
 struct Models {
+    /// Canonical outward normals of each level's points (normalised frame = canonical axes).
+    coarse_normals: Vec<P3>,
+    race_normals: Vec<P3>,
+    fine_normals: Vec<P3>,
     coarse: LinearModel,
     /// Middle resolution, for the race between the surviving hypotheses.
     race: LinearModel,
@@ -170,7 +187,17 @@ impl Models {
         let fine_idx = farthest_points(&canonical, 400);
         let race_idx = farthest_points(&canonical, 200);
         let coarse_idx = farthest_points(&canonical, 120);
-        Self { coarse: surface.select(&coarse_idx), race: surface.select(&race_idx), fine: surface.select(&fine_idx), surface, keypoints: model(&kp) }
+        let normals = |idx: &[usize]| idx.iter().map(|&i| space.surface_normals[i]).collect();
+        Self {
+            coarse_normals: normals(&coarse_idx),
+            race_normals: normals(&race_idx),
+            fine_normals: normals(&fine_idx),
+            coarse: surface.select(&coarse_idx),
+            race: surface.select(&race_idx),
+            fine: surface.select(&fine_idx),
+            surface,
+            keypoints: model(&kp),
+        }
     }
 }
 
@@ -202,7 +229,10 @@ impl Registrar {
         let race_x = subsample(&fine_x, opts.race_points, &mut rng);
         let coarse_x = subsample(&race_x, opts.coarse_points, &mut rng);
         let models = if opts.fit_latent { &self.deformable } else { &self.rigid };
-        let coarse_model = models.coarse.select(&(0..opts.coarse_model_points.min(models.coarse.len())).collect::<Vec<_>>());
+        let coarse_n = opts.coarse_model_points.min(models.coarse.len());
+        let coarse_model = models.coarse.select(&(0..coarse_n).collect::<Vec<_>>());
+        let coarse_normals = &models.coarse_normals[..coarse_n];
+        let viewpoint = opts.viewpoint.map(Vector3::from);
 
         let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
         let mut stage = StageTimes::default();
@@ -212,7 +242,8 @@ impl Registrar {
         let mut scored: Vec<(f64, Pose, f64)> = hyps
             .iter()
             .map(|&pose| {
-                let fit = em(&coarse_model, &coarse_x, pose, vec![0.0; 0], None, None, opts, opts.coarse_iters, &self.space.norm);
+                let view = View { normals: &coarse_normals, viewpoint };
+                let fit = em(&coarse_model, view, &coarse_x, pose, vec![0.0; 0], None, None, opts, opts.coarse_iters, &self.space.norm);
                 (fit.nll, fit.pose, fit.sigma2)
             })
             .collect();
@@ -223,7 +254,9 @@ impl Registrar {
         stage.coarse = ms(t_stage);
         let t_stage = Instant::now();
         let prior = opts.fit_latent.then_some(self.space.variances.as_slice());
-        let mut best: Option<Fit> = None;
+        let free_space = viewpoint.and_then(|vp| FreeSpace::new(&subsample(&all, 4000, &mut rng), vp, FREE_SPACE_MARGIN_M));
+        let mut best: Option<(f64, Fit)> = None;
+        let mut raced: Vec<(f64, Matrix3<f64>)> = Vec::new();
         let mut iterations = 0;
         // The survivors race a few iterations at full resolution (the coarse
         // level cannot see a mug's handle well enough to settle its yaw); the
@@ -231,20 +264,34 @@ impl Registrar {
         for (_, pose, sigma2) in scored.iter().take(opts.keep.max(1)) {
             // Start at the coarse fit's σ² (loosened for the finer model): re-annealing
             // from the data's spread would redo the coarse stage at full resolution.
-            let fit = em(&models.race, &race_x, *pose, vec![0.0; q], prior, Some(2.0 * sigma2), opts, opts.race_iters, &self.space.norm);
+            // Poses race on the mean shape: a free latent lets a wrong pose deform
+            // into a fit as good as the right one's (measured: most gross failures).
+            let fit = em(&models.race, View { normals: &models.race_normals, viewpoint }, &race_x, *pose, vec![0.0; q], None, Some(2.0 * sigma2), opts, opts.race_iters, &self.space.norm);
             iterations += fit.iterations;
-            if best.as_ref().is_none_or(|b| fit.nll < b.nll) {
-                best = Some(fit);
+            // Likelihood per observed point, penalised by the share of the model the view contradicts.
+            let violation = free_space.as_ref().map_or(0.0, |fs| {
+                let y: Vec<P3> = models.race.evaluate(&fit.latent).iter().map(|y| fit.pose.apply(y)).collect();
+                fs.violation_fraction(&y, models.race_normals.iter().map(|n| fit.pose.r * Vector3::from(*n)))
+            });
+            let score = fit.nll / race_x.len() as f64 + FREE_SPACE_PENALTY * violation;
+            raced.push((score, fit.pose.r));
+            if best.as_ref().is_none_or(|b| score < b.0) {
+                best = Some((score, fit));
             }
         }
-        let lead = best.expect("at least one hypothesis");
+        let (lead_score, lead) = best.expect("at least one hypothesis");
+        let ambiguous_pose = raced.iter().any(|(sc, r)| {
+            let angle = Rotation3::from_matrix_unchecked(lead.pose.r.transpose() * r).angle();
+            angle > 30f64.to_radians() && *sc - lead_score < AMBIGUITY_MARGIN
+        });
         stage.race = ms(t_stage);
         let t_stage = Instant::now();
-        let fit = em(&models.fine, &fine_x, lead.pose, lead.latent.clone(), prior, Some(lead.sigma2), opts, opts.fine_iters, &self.space.norm);
+        let fit = em(&models.fine, View { normals: &models.fine_normals, viewpoint }, &fine_x, lead.pose, lead.latent.clone(), prior, Some(lead.sigma2), opts, opts.fine_iters, &self.space.norm);
         iterations += fit.iterations;
         stage.refine = ms(t_stage);
         let t_stage = Instant::now();
-        let quality = self.quality(models, &fit, &fine_x);
+        let mut quality = self.quality(models, &fit, &fine_x);
+        quality.ambiguous_pose = ambiguous_pose;
         stage.quality = ms(t_stage);
         let keypoints = models
             .keypoints
@@ -278,13 +325,12 @@ impl Registrar {
         self.models_of(reg).surface.evaluate(&reg.latent).iter().map(|y| Point3::from(pose.apply(y))).collect()
     }
 
-    /// Any canonical points (canonical frame, metres) moved onto the registered tool.
+    /// Any canonical points (canonical frame, metres), on the surface or off
+    /// it (a demonstration's hand keypoints), moved onto the registered tool.
     pub fn transfer(&self, reg: &Registration, canonical_points: &[P3]) -> Vec<P3> {
         let pose = self.pose_of(reg);
-        if reg.latent.is_empty() {
-            return canonical_points.iter().map(|z| pose.apply(&self.space.norm.forward(z))).collect();
-        }
-        self.space.linear_model(canonical_points).evaluate(&reg.latent).iter().map(|y| pose.apply(y)).collect()
+        let deformed = if reg.latent.is_empty() { canonical_points.to_vec() } else { self.space.deform_anchored(canonical_points, &reg.latent) };
+        deformed.iter().map(|z| pose.apply(&self.space.norm.forward(z))).collect()
     }
 
     /// A registration without latent (the `canonical` baseline) uses the undeformed models.
@@ -300,7 +346,9 @@ impl Registrar {
     }
 
     fn hypotheses(&self, x: &[P3], opts: &RegisterOptions) -> Vec<Pose> {
-        let (ax_o, mu_o) = principal_axes(x);
+        // Axes and centre of the view's core: stray points (segmentation
+        // leaks, flying pixels) would drag a plain centroid and tilt the axes.
+        let (ax_o, mu_o) = principal_axes(&trimmed_core(x));
         let s0 = self.space.norm.scale;
         let mut rots = Vec::new();
         // Principal axes of the view onto the canonical's (4 proper sign choices).
@@ -315,11 +363,11 @@ impl Registrar {
         }
         match opts.up {
             Some(up) => {
-                // Upright at six yaws.
+                // Upright at `yaws` yaws.
                 let up = Vector3::from(up).try_normalize(1e-9).unwrap_or_else(Vector3::z);
                 let align = Rotation3::rotation_between(&Vector3::z(), &up).unwrap_or_else(|| Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI));
-                for k in 0..6 {
-                    let yaw = Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(up), k as f64 * std::f64::consts::TAU / 6.0);
+                for k in 0..opts.yaws {
+                    let yaw = Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(up), k as f64 * std::f64::consts::TAU / opts.yaws as f64);
                     rots.push(*(yaw * align).matrix());
                 }
             }
@@ -355,7 +403,7 @@ impl Registrar {
         }
         let inlier_fraction = n_in as f64 / x.len().max(1) as f64;
         let residual_mm = if n_in > 0 { (sum2 / n_in as f64).sqrt() * 1e3 } else { f64::INFINITY };
-        FitQuality { inlier_fraction, residual_mm, inlier_mm: inlier_m * 1e3, confident: inlier_fraction >= CONFIDENT_INLIER_FRACTION }
+        FitQuality { inlier_fraction, residual_mm, inlier_mm: inlier_m * 1e3, confident: inlier_fraction >= CONFIDENT_INLIER_FRACTION, ambiguous_pose: false }
     }
 }
 
@@ -382,10 +430,49 @@ struct Fit {
     iterations: usize,
 }
 
+/// What the camera can see: canonical normals of the model points and the
+/// viewpoint in the cloud's frame.
+#[derive(Clone, Copy)]
+struct View<'a> {
+    normals: &'a [P3],
+    viewpoint: Option<Vector3<f64>>,
+}
+
+/// Two raced poses whose scores (nats per observed point) differ by less than
+/// this explain the view equally well.
+const AMBIGUITY_MARGIN: f64 = 0.2;
+
+/// Noise forgiven by the free-space test, metres.
+const FREE_SPACE_MARGIN_M: f64 = 0.006;
+/// Score penalty (nats per observed point) for contradicting the whole visible model.
+const FREE_SPACE_PENALTY: f64 = 4.0;
+
+/// Mixing weight of a model point facing away from the camera.
+const HIDDEN_WEIGHT: f64 = 0.1;
+
+impl View<'_> {
+    /// Mixing weights (mean 1) from back-face culling, or None without a viewpoint.
+    fn weights<'w>(&self, pose: &Pose, y_world: &[P3], out: &'w mut Vec<f64>) -> Option<&'w [f64]> {
+        let vp = self.viewpoint?;
+        if self.normals.len() != y_world.len() {
+            return None;
+        }
+        out.clear();
+        out.extend(self.normals.iter().zip(y_world).map(|(n, y)| {
+            let facing = (pose.r * Vector3::from(*n)).dot(&(vp - Vector3::from(*y)));
+            if facing > 0.0 { 1.0 } else { HIDDEN_WEIGHT }
+        }));
+        let mean = out.iter().sum::<f64>() / out.len().max(1) as f64;
+        out.iter_mut().for_each(|w| *w /= mean);
+        Some(out)
+    }
+}
+
 /// EM over pose (and latent, when `prior` is given).
 #[allow(clippy::too_many_arguments)]
 fn em(
     model: &LinearModel,
+    view: View,
     x: &[P3],
     mut pose: Pose,
     mut latent: Vec<f64>,
@@ -399,6 +486,10 @@ fn em(
     let mut estep = EStep::new(x);
     // A fit needs the pairs within a few σ only (e^{-12.5} beyond 5σ).
     estep.cutoff_sigmas = 5.0;
+    estep.single_precision = true;
+    // Registration sets are small (≤ 400 a side): the f32 dense sums beat
+    // the grid until the cutoff ball is a small part of the view.
+    estep.truncate_below = 0.2;
     let mut post = Posteriors::default();
     let mut y_model = Vec::with_capacity(model.len());
     model.evaluate_into(&latent, &mut y_model);
@@ -406,9 +497,11 @@ fn em(
     let mut sigma2 = sigma2_init.unwrap_or_else(|| initial_sigma2(x, &y_world));
     let (smin, smax) = (opts.scale_range.0 * norm.scale, opts.scale_range.1 * norm.scale);
     let (mut prev, mut nll, mut it) = (f64::INFINITY, f64::INFINITY, 0);
+    let mut weights = Vec::new();
     while it < iters {
         it += 1;
-        estep.run(&y_world, sigma2, opts.outlier_weight, &mut post);
+        let w = view.weights(&pose, &y_world, &mut weights);
+        estep.run_weighted(&y_world, w, sigma2, opts.outlier_weight, &mut post);
         nll = post.neg_log_likelihood;
         if !(post.np > 1e-9) {
             break;
@@ -548,6 +641,22 @@ pub fn farthest_points(x: &[P3], n: usize) -> Vec<usize> {
         cur = best.1;
     }
     out
+}
+
+/// The points within 2.5× the median distance of the coordinate-wise median.
+fn trimmed_core(x: &[P3]) -> Vec<P3> {
+    if x.len() < 10 {
+        return x.to_vec();
+    }
+    let median = |mut v: Vec<f64>| {
+        let mid = v.len() / 2;
+        *v.select_nth_unstable_by(mid, f64::total_cmp).1
+    };
+    let m = [median(x.iter().map(|p| p[0]).collect()), median(x.iter().map(|p| p[1]).collect()), median(x.iter().map(|p| p[2]).collect())];
+    let d: Vec<f64> = x.iter().map(|p| dist2(p, &m).sqrt()).collect();
+    let limit = 2.5 * median(d.clone());
+    let core: Vec<P3> = x.iter().zip(&d).filter(|(_, &di)| di <= limit).map(|(p, _)| *p).collect();
+    if core.len() >= 10 { core } else { x.to_vec() }
 }
 
 /// Principal axes (columns, descending variance, right-handed) and centroid.

@@ -1,0 +1,204 @@
+//! A demonstration carried onto another tool, end to end (paper §II-B):
+//! the demonstration's keypoints, given in the canonical tool frame, go
+//! through the shape space's deformation and the registered pose (the
+//! *generalised demonstration*, i.e. the grasp targets); the canonical
+//! tool's mesh goes the same way (the registered shape the fingers must not
+//! pierce); the demonstrated grasp, carried by the registered pose, is the
+//! warm start and the CG baseline; the solved grasp is backed off into the
+//! pre-grasp.
+//!
+//! ```no_run
+//! use graspd::grasp::{transfer::{solve_transferred, TransferredTool}, Demonstration, GraspSolver, SolveOptions, PreGraspOptions};
+//! use graspd::hand::HandModel;
+//! use graspd::shape::{builtin, Registrar, RegisterOptions};
+//! use graspd::tools::{self, Category, Split};
+//! # fn cloud() -> Vec<nalgebra::Point3<f64>> { vec![] }
+//! let hand = HandModel::default_sih().unwrap();
+//! let demo = Demonstration::builtin(Category::Mug).unwrap();
+//! let canonical = tools::family(Category::Mug).unwrap().into_iter().find(|i| i.split == Split::Canonical).unwrap();
+//! let registrar = Registrar::new(builtin::load_or_build(Category::Mug, "assets/spaces".as_ref(), |_, _| {}).unwrap());
+//! let reg = registrar.register(&cloud(), &RegisterOptions::default()).unwrap();
+//! let tool = TransferredTool::from_registration(&registrar, &reg, &demo.keypoints(&hand).unwrap(), &canonical.mesh).unwrap();
+//! let mut solver = GraspSolver::new(&hand, SolveOptions::default());
+//! let out = solve_transferred(&mut solver, &demo, &tool, Some(0.0), &PreGraspOptions::default()).unwrap();
+//! ```
+
+use std::time::Instant;
+
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+
+use super::baselines::{baseline_wp, BaselineGrasp};
+use super::penetration::{Scene, ToolCollider};
+use super::pregrasp::{pregrasp, PreGrasp, PreGraspOptions};
+use super::{
+    task_space_distance_cm as distance_cm, Demonstration, Grasp, GraspError, GraspSolver, GraspTargets, SolveReport,
+};
+use crate::geometry::TriMesh;
+use crate::shape::{Registrar, Registration, ShapeSpace};
+
+/// A similarity transform x = s·R·z + t (the registered pose of a tool:
+/// its canonical frame in the cloud's frame, with a uniform scale).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Similarity {
+    pub rotation: UnitQuaternion<f64>,
+    pub translation: Vector3<f64>,
+    pub scale: f64,
+}
+
+impl Similarity {
+    pub fn identity() -> Self {
+        Self { rotation: UnitQuaternion::identity(), translation: Vector3::zeros(), scale: 1.0 }
+    }
+
+    /// The registered pose: cloud frame from canonical frame.
+    pub fn of_registration(reg: &Registration) -> Self {
+        Self {
+            rotation: reg.rotation_cloud_from_canonical,
+            translation: reg.translation_cloud_from_canonical,
+            scale: reg.scale,
+        }
+    }
+
+    pub fn apply(&self, p: &Point3<f64>) -> Point3<f64> {
+        Point3::from(self.scale * (self.rotation * p.coords) + self.translation)
+    }
+
+    /// A rigid frame given in the canonical frame (a wrist pose), carried
+    /// along: its origin moves as a point (scaled about the canonical
+    /// origin), its axes turn with the rotation and keep their length.
+    pub fn carry(&self, pose: &Isometry3<f64>) -> Isometry3<f64> {
+        let origin = self.apply(&Point3::from(pose.translation.vector));
+        Isometry3::from_parts(Translation3::from(origin.coords), self.rotation * pose.rotation)
+    }
+
+    /// The rigid part (rotation and translation, scale dropped).
+    pub fn rigid(&self) -> Isometry3<f64> {
+        Isometry3::from_parts(Translation3::from(self.translation), self.rotation)
+    }
+}
+
+/// The demonstration moved onto one tool.
+#[derive(Debug)]
+pub struct TransferredTool {
+    /// Where the tool's canonical frame is (for carrying the demonstrated wrist).
+    pub pose: Similarity,
+    /// The generalised demonstration: one target per hand keypoint, world frame.
+    pub targets: Vec<Point3<f64>>,
+    /// The registered shape: the canonical mesh deformed and posed (world
+    /// frame, same triangles, so still closed).
+    pub mesh: TriMesh,
+    /// `mesh` as a solid, for the penetration term.
+    pub collider: ToolCollider,
+    /// Time to deform the keypoints and the mesh and build the collider, ms.
+    pub elapsed_ms: f64,
+}
+
+impl TransferredTool {
+    /// Through a registration of an observed cloud.
+    pub fn from_registration(
+        registrar: &Registrar,
+        reg: &Registration,
+        demo_keypoints_canonical: &[Point3<f64>],
+        canonical_mesh: &TriMesh,
+    ) -> Result<Self, GraspError> {
+        Self::build(Similarity::of_registration(reg), demo_keypoints_canonical, canonical_mesh, |z| {
+            registrar.transfer(reg, z)
+        })
+    }
+
+    /// Through a latent of `space` alone, the tool at its canonical pose
+    /// (a training instance: `space.train_latents`).
+    pub fn from_latent(
+        space: &ShapeSpace,
+        latent: &[f64],
+        demo_keypoints_canonical: &[Point3<f64>],
+        canonical_mesh: &TriMesh,
+    ) -> Result<Self, GraspError> {
+        Self::build(Similarity::identity(), demo_keypoints_canonical, canonical_mesh, |z| space.deform_anchored(z, latent))
+    }
+
+    fn build(
+        pose: Similarity,
+        keypoints: &[Point3<f64>],
+        canonical_mesh: &TriMesh,
+        deform: impl Fn(&[[f64; 3]]) -> Vec<[f64; 3]>,
+    ) -> Result<Self, GraspError> {
+        let t0 = Instant::now();
+        let kp: Vec<[f64; 3]> = keypoints.iter().map(|p| [p.x, p.y, p.z]).collect();
+        let targets: Vec<Point3<f64>> = deform(&kp).into_iter().map(Point3::from).collect();
+        if let Some(index) = targets.iter().position(|p| !p.coords.iter().all(|v| v.is_finite())) {
+            return Err(GraspError::NonFiniteKeypoint { index });
+        }
+        let vs: Vec<[f64; 3]> = canonical_mesh.vertices.iter().map(|p| [p.x, p.y, p.z]).collect();
+        let mesh = TriMesh {
+            vertices: deform(&vs).into_iter().map(Point3::from).collect(),
+            triangles: canonical_mesh.triangles.clone(),
+            parts: canonical_mesh.parts.clone(),
+        };
+        let collider = ToolCollider::new(&mesh, Isometry3::identity())?;
+        Ok(Self { pose, targets, mesh, collider, elapsed_ms: 1e3 * t0.elapsed().as_secs_f64() })
+    }
+
+    /// Lowest point of the registered shape (where the table is, for a tool
+    /// resting on one).
+    pub fn lowest_z(&self) -> f64 {
+        self.mesh.vertices.iter().map(|p| p.z).fold(f64::INFINITY, f64::min)
+    }
+}
+
+/// A transferred grasp with its baselines and pre-grasp.
+#[derive(Clone, Debug)]
+pub struct TransferredGrasp {
+    pub targets: GraspTargets,
+    /// The demonstrated grasp carried by the registered pose: the warm start.
+    pub warm_start: Grasp,
+    pub grasp: Grasp,
+    pub report: SolveReport,
+    /// Paper Table I: the solved grasp's mean keypoint distance to the targets, cm.
+    pub task_space_distance_cm: f64,
+    /// CG: the demonstrated grasp kept in the object frame (= the warm start).
+    pub cg: BaselineGrasp,
+    /// WP: the demonstrated wrist moved by the best rigid fit of the
+    /// demonstration's keypoints to the targets, joints kept.
+    pub wp: BaselineGrasp,
+    pub pregrasp: PreGrasp,
+    pub pregrasp_ms: f64,
+}
+
+/// Solves the grasp for `tool` (its registered shape and, when given, the
+/// table plane z = `table_height_world` as obstacles), warm-started from the
+/// demonstration carried by the registered pose.
+pub fn solve_transferred(
+    solver: &mut GraspSolver,
+    demo: &Demonstration,
+    tool: &TransferredTool,
+    table_height_world: Option<f64>,
+    pregrasp_options: &PreGraspOptions,
+) -> Result<TransferredGrasp, GraspError> {
+    let hand = solver.hand().clone();
+    let canonical = demo.grasp_at(&hand, &Isometry3::identity())?;
+    let warm_start = Grasp::new(&hand, tool.pose.carry(&canonical.wrist_pose_world), canonical.actuated.clone());
+    let targets = GraspTargets::uniform(tool.targets.clone());
+    let scene = Scene { tool: Some(&tool.collider), table_height_world };
+    let (grasp, report) = solver.solve(&targets, &warm_start, &scene)?;
+    let task_space_distance_cm = distance_cm(&hand, &grasp, &targets.keypoints_world);
+    let cg = BaselineGrasp {
+        task_space_distance_cm: distance_cm(&hand, &warm_start, &targets.keypoints_world),
+        grasp: warm_start.clone(),
+    };
+    let wp = baseline_wp(&hand, &warm_start, &targets)?;
+    let t0 = Instant::now();
+    let pre = pregrasp(&hand, &grasp, &scene, pregrasp_options)?;
+    let pregrasp_ms = 1e3 * t0.elapsed().as_secs_f64();
+    Ok(TransferredGrasp {
+        targets,
+        warm_start,
+        grasp,
+        report,
+        task_space_distance_cm,
+        cg,
+        wp,
+        pregrasp: pre,
+        pregrasp_ms,
+    })
+}
