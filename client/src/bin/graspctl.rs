@@ -66,6 +66,9 @@ struct SoakArgs {
     seconds: u64,
     #[arg(long, default_value_t = 20_000)]
     points: usize,
+    /// Send this cloud (all its points) instead of a synthetic one of --points.
+    #[arg(long)]
+    cloud: Option<PathBuf>,
     /// grasp (when the daemon serves it) or register.
     #[arg(long, default_value = "register")]
     method: String,
@@ -524,7 +527,10 @@ fn soak(cli: &Cli, a: &SoakArgs, opts: ClientOptions) -> Result<(), Failure> {
         "register" => false,
         m => return Err(format!("--method {m}: grasp or register").into()),
     };
-    let cloud = Arc::new(synthetic_mug_view(a.points));
+    let cloud = Arc::new(match &a.cloud {
+        Some(p) => read_cloud(p).map_err(|e| e.to_string())?,
+        None => synthetic_mug_view(a.points),
+    });
     let stop = Arc::new(AtomicBool::new(false));
     let (ok, errors) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
     let first_error = Arc::new(std::sync::Mutex::new(None::<String>));
@@ -581,7 +587,7 @@ fn soak(cli: &Cli, a: &SoakArgs, opts: ClientOptions) -> Result<(), Failure> {
     let get = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap_or(0.0);
     let (first, last) = (samples.first().cloned().unwrap_or(after.clone()), samples.last().cloned().unwrap_or(after.clone()));
     let v = serde_json::json!({
-        "clients": a.clients, "seconds": a.seconds, "points": a.points, "method": a.method,
+        "clients": a.clients, "seconds": a.seconds, "points": cloud.len(), "method": a.method,
         "requests_ok": ok.load(Ordering::Relaxed), "errors": errors.load(Ordering::Relaxed),
         "first_error": first_error.lock().unwrap().clone(),
         "rss_bytes": {"first": get(&first, "rss_bytes"), "last": get(&last, "rss_bytes"), "max": samples.iter().map(|s| get(s, "rss_bytes")).fold(0.0, f64::max)},
