@@ -614,6 +614,21 @@ impl Endpoints {
     }
 }
 
+/// A received request; a receive error is logged (at most once a second) and ends this pass.
+fn received<T, E: Debug>(method: Method, r: Result<Option<T>, E>) -> Option<T> {
+    static LAST_LOG_S: AtomicUsize = AtomicUsize::new(0);
+    match r {
+        Ok(v) => v,
+        Err(e) => {
+            let now = SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_secs() as usize).unwrap_or(0);
+            if LAST_LOG_S.swap(now, Ordering::Relaxed) != now {
+                tracing::warn!("{}: receiving a request failed: {e:?}", method.name());
+            }
+            None
+        }
+    }
+}
+
 /// One pass over every server: answers plain requests and invalid ones, and
 /// admits valid Register/Grasp requests. With `take`, the first admitted one
 /// that finds a free engine slot is returned for the calling thread to run
@@ -622,7 +637,7 @@ impl Endpoints {
 fn dispatch(shared: &Shared, ep: &Endpoints, take: bool) -> (usize, Option<Job>) {
     let mut handled = 0;
     // Plain methods: answered here.
-    while let Ok(Some(req)) = ep.health.server.receive() {
+    while let Some(req) = received(Method::Health, ep.health.server.receive()) {
         handled += 1;
         let t = Instant::now();
         let body = shared.health(shared.startup_ns);
@@ -635,7 +650,7 @@ fn dispatch(shared: &Shared, ep: &Endpoints, take: bool) -> (usize, Option<Job>)
         let ok = status.code == StatusCode::Ok;
         shared.answer(Method::Health, &req, status, ok.then_some(&body), t, 0);
     }
-    while let Ok(Some(req)) = ep.categories.server.receive() {
+    while let Some(req) = received(Method::ListCategories, ep.categories.server.receive()) {
         handled += 1;
         let t = Instant::now();
         match shared.check_header(req.user_header()) {
@@ -643,7 +658,7 @@ fn dispatch(shared: &Shared, ep: &Endpoints, take: bool) -> (usize, Option<Job>)
             Err(s) => shared.answer(Method::ListCategories, &req, s, None, t, 0),
         }
     }
-    while let Ok(Some(req)) = ep.stats.server.receive() {
+    while let Some(req) = received(Method::Stats, ep.stats.server.receive()) {
         handled += 1;
         let t = Instant::now();
         match shared.check_header(req.user_header()) {
@@ -657,7 +672,7 @@ fn dispatch(shared: &Shared, ep: &Endpoints, take: bool) -> (usize, Option<Job>)
     // Cloud methods: validated here; run by this thread or queued.
     macro_rules! cloud {
         ($server:expr, $method:expr, $variant:ident) => {
-            while let Ok(Some(req)) = $server.receive() {
+            while let Some(req) = received($method, $server.receive()) {
                 handled += 1;
                 let t = Instant::now();
                 let h = *req.user_header();
