@@ -497,6 +497,7 @@ impl Client {
         deadline: Instant,
     ) -> Result<(ResponseHeader, R), Error> {
         let mut last_check = Instant::now();
+        let started = last_check;
         loop {
             match pending.receive() {
                 Ok(Some(r)) => return Ok((*r.user_header(), *r.payload())),
@@ -525,7 +526,10 @@ impl Client {
                     let slice = (deadline - now).min(Duration::from_millis(50));
                     let _ = l.timed_wait(|_| {}, slice);
                 }
-                None => std::hint::spin_loop(),
+                // Spin 50 µs, then yield the core between looks (the daemon's
+                // threads may need it on a busy machine).
+                None if now.duration_since(started) < Duration::from_micros(50) => std::hint::spin_loop(),
+                None => std::thread::yield_now(),
             }
         }
     }

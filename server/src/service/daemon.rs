@@ -987,6 +987,7 @@ fn lead(shared: &Shared, ep: &Endpoints, waitset: Option<&WaitSet<Ipc>>, st: &mu
     let housekeeping = Duration::from_millis(shared.config.housekeeping_ms);
     let metrics = (shared.config.metrics_interval_s > 0.0).then(|| Duration::from_secs_f64(shared.config.metrics_interval_s));
     let mut last_signal_check = Instant::now();
+    let (mut idle_spins, mut idle_since): (u32, Option<Instant>) = (0, None);
     loop {
         if shared.stop_workers.load(Ordering::Acquire) {
             return None;
@@ -1019,6 +1020,8 @@ fn lead(shared: &Shared, ep: &Endpoints, waitset: Option<&WaitSet<Ipc>>, st: &mu
             }
         }
         if handled > 0 {
+            idle_spins = 0;
+            idle_since = None;
             continue;
         }
         match waitset {
@@ -1042,7 +1045,15 @@ fn lead(shared: &Shared, ep: &Endpoints, waitset: Option<&WaitSet<Ipc>>, st: &mu
                 }
             }
             None => {
-                std::hint::spin_loop();
+                // Spin; after 50 µs without work, yield the core between looks (a
+                // runnable engine thread or client on a busy machine gets it; on an
+                // idle core a yield returns at once).
+                idle_spins += 1;
+                if idle_spins > 512 && idle_since.get_or_insert_with(Instant::now).elapsed() > Duration::from_micros(50) {
+                    std::thread::yield_now();
+                } else {
+                    std::hint::spin_loop();
+                }
                 if last_signal_check.elapsed() >= Duration::from_millis(2) {
                     last_signal_check = Instant::now();
                     if termination_requested() {
