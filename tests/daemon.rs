@@ -39,7 +39,18 @@ fn fixture() -> &'static Fixture {
         for (mesh, view) in [("mug_test_00.obj", "0"), ("mug_test_01.obj", "3")] {
             let out = dir.path().join(format!("{mesh}.{view}.ply"));
             let m = assets.join(mesh);
-            graspd_json(&["cloud", "--mesh", m.to_str().unwrap(), "--view", view, "--seed", "1", "--out", out.to_str().unwrap(), "--json"]);
+            graspd_json(&[
+                "cloud",
+                "--mesh",
+                m.to_str().unwrap(),
+                "--view",
+                view,
+                "--seed",
+                "1",
+                "--out",
+                out.to_str().unwrap(),
+                "--json",
+            ]);
             let expected = graspd_json(&["register", "--category", "mug", "--cloud", out.to_str().unwrap(), "--json"]);
             let points = cloudfile::read_cloud(&out).unwrap();
             views.push((out, points, expected));
@@ -75,9 +86,16 @@ impl Daemon {
         let dir = tempfile::tempdir().unwrap();
         let cfg = dir.path().join("graspd.toml");
         // Test defaults, unless `extra` sets the key.
-        let base = [format!("service_prefix = \"{prefix}\""), "categories = [\"mug\"]".into(), "workers = 2".into(), "housekeeping_ms = 100".into(), "slow_request_ms = 5000.0".into()];
+        let base = [
+            format!("service_prefix = \"{prefix}\""),
+            "categories = [\"mug\"]".into(),
+            "workers = 2".into(),
+            "housekeeping_ms = 100".into(),
+            "slow_request_ms = 5000.0".into(),
+        ];
         let keys: Vec<&str> = extra.lines().filter_map(|l| l.split('=').next()).map(str::trim).collect();
-        let mut text: Vec<String> = base.into_iter().filter(|l| !keys.contains(&l.split('=').next().unwrap().trim())).collect();
+        let mut text: Vec<String> =
+            base.into_iter().filter(|l| !keys.contains(&l.split('=').next().unwrap().trim())).collect();
         text.push(extra.to_owned());
         std::fs::write(&cfg, text.join("\n")).unwrap();
         let mut child = Command::new(GRASPD)
@@ -183,7 +201,8 @@ fn assert_same_registration(got: &graspd_client::Registration, expected: &serde_
         let p: Vec<f64> = e["position"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
         assert_eq!(g.position.to_vec(), p, "{}", g.name);
     }
-    let q: Vec<f64> = expected["pose"]["rotation_xyzw"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    let q: Vec<f64> =
+        expected["pose"]["rotation_xyzw"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
     assert_eq!(got.pose.rotation_xyzw.to_vec(), q);
     assert_eq!(got.fit.confident, expected["fit"]["confident"].as_bool().unwrap());
     assert_eq!(got.fit.ambiguous_pose, expected["fit"]["ambiguous_pose"].as_bool().unwrap());
@@ -229,7 +248,16 @@ fn concurrent_clients_get_the_same_answers_as_the_cli() {
     let graspctl = Path::new(GRASPD).with_file_name("graspctl");
     if graspctl.exists() {
         let out = Command::new(&graspctl)
-            .args(["--prefix", &d.prefix, "register", "--category", "mug", "--cloud", f.views[0].0.to_str().unwrap(), "--json"])
+            .args([
+                "--prefix",
+                &d.prefix,
+                "register",
+                "--category",
+                "mug",
+                "--cloud",
+                f.views[0].0.to_str().unwrap(),
+                "--json",
+            ])
             .output()
             .unwrap();
         assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stdout));
@@ -254,21 +282,109 @@ fn bad_inputs_get_their_status_and_the_daemon_keeps_serving() {
         let (h, _) = r.expect("an answer");
         (StatusCode::from_u32(h.status), proto::text_lossy(&h.message))
     };
-    let cases: Vec<(&str, Box<dyn Fn(&mut proto::RequestHeader)>, Vec<Point>, StatusCode)> = vec![
-        ("wrong protocol version", Box::new(move |h| { set_mug(h); h.protocol_version = 99 }), good.clone(), StatusCode::InvalidArgument),
-        ("unknown flags", Box::new(move |h| { set_mug(h); h.flags = 4 }), good.clone(), StatusCode::InvalidArgument),
-        ("unknown category", Box::new(move |h| { set_mug(h); h.category = proto::str_to_text("teapot") }), good.clone(), StatusCode::NotFound),
-        ("garbage category bytes", Box::new(move |h| { set_mug(h); h.category = [0xfe; 32] }), good.clone(), StatusCode::InvalidArgument),
-        ("garbage after the NUL", Box::new(move |h| { set_mug(h); h.category[20] = b'x' }), good.clone(), StatusCode::InvalidArgument),
-        ("garbage frame name", Box::new(move |h| { set_mug(h); h.cloud_frame = [0xc3; 32] }), good.clone(), StatusCode::InvalidArgument),
+    type Edit = Box<dyn Fn(&mut proto::RequestHeader)>;
+    let cases: Vec<(&str, Edit, Vec<Point>, StatusCode)> = vec![
+        (
+            "wrong protocol version",
+            Box::new(move |h| {
+                set_mug(h);
+                h.protocol_version = 99
+            }),
+            good.clone(),
+            StatusCode::InvalidArgument,
+        ),
+        (
+            "unknown flags",
+            Box::new(move |h| {
+                set_mug(h);
+                h.flags = 4
+            }),
+            good.clone(),
+            StatusCode::InvalidArgument,
+        ),
+        (
+            "unknown category",
+            Box::new(move |h| {
+                set_mug(h);
+                h.category = proto::str_to_text("teapot")
+            }),
+            good.clone(),
+            StatusCode::NotFound,
+        ),
+        (
+            "garbage category bytes",
+            Box::new(move |h| {
+                set_mug(h);
+                h.category = [0xfe; 32]
+            }),
+            good.clone(),
+            StatusCode::InvalidArgument,
+        ),
+        (
+            "garbage after the NUL",
+            Box::new(move |h| {
+                set_mug(h);
+                h.category[20] = b'x'
+            }),
+            good.clone(),
+            StatusCode::InvalidArgument,
+        ),
+        (
+            "garbage frame name",
+            Box::new(move |h| {
+                set_mug(h);
+                h.cloud_frame = [0xc3; 32]
+            }),
+            good.clone(),
+            StatusCode::InvalidArgument,
+        ),
         ("empty cloud", Box::new(set_mug), vec![], StatusCode::InvalidArgument),
-        ("NaN", Box::new(set_mug), { let mut v = good.clone(); v[7].0[1] = f32::NAN; v }, StatusCode::InvalidArgument),
-        ("Inf", Box::new(set_mug), { let mut v = good.clone(); v[0].0[2] = f32::NEG_INFINITY; v }, StatusCode::InvalidArgument),
-        ("NaN up", Box::new(move |h| { set_mug(h); h.up_in_cloud = [f32::NAN, 0.0, 1.0] }), good.clone(), StatusCode::InvalidArgument),
+        (
+            "NaN",
+            Box::new(set_mug),
+            {
+                let mut v = good.clone();
+                v[7].0[1] = f32::NAN;
+                v
+            },
+            StatusCode::InvalidArgument,
+        ),
+        (
+            "Inf",
+            Box::new(set_mug),
+            {
+                let mut v = good.clone();
+                v[0].0[2] = f32::NEG_INFINITY;
+                v
+            },
+            StatusCode::InvalidArgument,
+        ),
+        (
+            "NaN up",
+            Box::new(move |h| {
+                set_mug(h);
+                h.up_in_cloud = [f32::NAN, 0.0, 1.0]
+            }),
+            good.clone(),
+            StatusCode::InvalidArgument,
+        ),
         ("too many points", Box::new(set_mug), vec![Point([0.01, 0.02, 0.03]); 50_001], StatusCode::ResourceExhausted),
-        ("expired deadline", Box::new(move |h| { set_mug(h); h.deadline_unix_ns = 1 }), good.clone(), StatusCode::DeadlineExceeded),
+        (
+            "expired deadline",
+            Box::new(move |h| {
+                set_mug(h);
+                h.deadline_unix_ns = 1
+            }),
+            good.clone(),
+            StatusCode::DeadlineExceeded,
+        ),
         ("all points at one place", Box::new(set_mug), vec![Point([0.1, 0.2, 0.3]); 500], StatusCode::InvalidArgument),
-        ("a cloud in millimetres", Box::new(set_mug), good.iter().map(|p| Point(p.0.map(|x| x * 1000.0))).collect(), StatusCode::InvalidArgument),
+        (
+            "a cloud in millimetres",
+            Box::new(set_mug),
+            good.iter().map(|p| Point(p.0.map(|x| x * 1000.0))).collect(),
+            StatusCode::InvalidArgument,
+        ),
     ];
     for (what, edit, points, want) in &cases {
         let (got, msg) = code(c.register_raw(Cloud::Slice(points), |h| edit(h), TIMEOUT));
@@ -277,13 +393,44 @@ fn bad_inputs_get_their_status_and_the_daemon_keeps_serving() {
     }
     // Grasp: its own checks (table, pre-grasp options), then the same answer as `graspd grasp`.
     for (what, edit) in [
-        ("table_mode 7", Box::new(move |h: &mut proto::RequestHeader| { set_mug(h); h.table_mode = 7 }) as Box<dyn Fn(&mut proto::RequestHeader)>),
-        ("NaN table", Box::new(move |h| { set_mug(h); h.table_mode = proto::table_mode::GIVEN; h.table_z_m = f32::NAN })),
-        ("back-off 3 m", Box::new(move |h| { set_mug(h); h.pregrasp_backoff_m = 3.0 })),
-        ("NaN viewpoint", Box::new(move |h| { set_mug(h); h.flags = proto::flags::VIEWPOINT; h.viewpoint_in_cloud_m = [0.0, f32::NAN, 0.0] })),
+        (
+            "table_mode 7",
+            Box::new(move |h: &mut proto::RequestHeader| {
+                set_mug(h);
+                h.table_mode = 7
+            }) as Box<dyn Fn(&mut proto::RequestHeader)>,
+        ),
+        (
+            "NaN table",
+            Box::new(move |h| {
+                set_mug(h);
+                h.table_mode = proto::table_mode::GIVEN;
+                h.table_z_m = f32::NAN
+            }),
+        ),
+        (
+            "back-off 3 m",
+            Box::new(move |h| {
+                set_mug(h);
+                h.pregrasp_backoff_m = 3.0
+            }),
+        ),
+        (
+            "NaN viewpoint",
+            Box::new(move |h| {
+                set_mug(h);
+                h.flags = proto::flags::VIEWPOINT;
+                h.viewpoint_in_cloud_m = [0.0, f32::NAN, 0.0]
+            }),
+        ),
     ] {
         let (h, _) = c.grasp_raw(Cloud::Slice(&good), |h| edit(h), TIMEOUT).unwrap();
-        assert_eq!(StatusCode::from_u32(h.status), StatusCode::InvalidArgument, "{what}: {}", proto::text_lossy(&h.message));
+        assert_eq!(
+            StatusCode::from_u32(h.status),
+            StatusCode::InvalidArgument,
+            "{what}: {}",
+            proto::text_lossy(&h.message)
+        );
     }
     match c.grasp("mug", &f.views[0].1, TIMEOUT) {
         Ok(g) => assert_same_grasp(&g, &f.grasp),
@@ -323,7 +470,17 @@ fn a_client_killed_mid_request_costs_nothing() {
     // iceoryx2 ports, sending, waiting while the request is worked on.
     for (i, delay_ms) in [1u64, 3, 5, 8, 12, 18, 25].into_iter().enumerate() {
         let mut child = Command::new(&graspctl)
-            .args(["--prefix", &d.prefix, "--wait", "event", "register", "--category", "mug", "--cloud", f.views[i % 2].0.to_str().unwrap()])
+            .args([
+                "--prefix",
+                &d.prefix,
+                "--wait",
+                "event",
+                "register",
+                "--category",
+                "mug",
+                "--cloud",
+                f.views[i % 2].0.to_str().unwrap(),
+            ])
             .stdout(Stdio::null())
             .stderr(Stdio::null())
             .spawn()
@@ -343,7 +500,11 @@ fn a_client_killed_mid_request_costs_nothing() {
         if s.clients_connected == 1 && in_flight == 0 {
             break;
         }
-        assert!(t0.elapsed() < Duration::from_secs(10), "dead clients linger: {} connected, {in_flight} in flight", s.clients_connected);
+        assert!(
+            t0.elapsed() < Duration::from_secs(10),
+            "dead clients linger: {} connected, {in_flight} in flight",
+            s.clients_connected
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
     assert!(c.health().unwrap().serving);
@@ -352,7 +513,6 @@ fn a_client_killed_mid_request_costs_nothing() {
 #[test]
 fn a_waiting_client_survives_a_daemon_crash_and_restart() {
     let mut d = Daemon::start("restart", "");
-    let f = fixture();
     let opts = d.options();
     let first_pid = d.client().health().unwrap().pid;
     let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
@@ -409,7 +569,9 @@ fn sigterm_while_busy_finishes_the_requests_in_flight() {
     assert_eq!(v["abandoned"], 0);
     assert!(v["requests"].as_u64().unwrap() >= 3);
     // Gone: a new client finds no daemon.
-    let e = Client::connect(ClientOptions { prefix: d.prefix.clone(), ..ClientOptions::default() }).err().expect("no daemon");
+    let e = Client::connect(ClientOptions { prefix: d.prefix.clone(), ..ClientOptions::default() })
+        .err()
+        .expect("no daemon");
     assert_eq!(e.code, StatusCode::Unavailable, "{e}");
 }
 

@@ -82,7 +82,8 @@ fn read_npy(path: &Path, b: &[u8]) -> Result<Vec<[f32; 3]>, CloudError> {
         return err(path, "Fortran-ordered NPY is not supported");
     }
     let shape = header.split("'shape':").nth(1).and_then(|s| s.split(')').next()).unwrap_or("");
-    let dims: Vec<usize> = shape.trim_start_matches([' ', '(']).split(',').filter_map(|s| s.trim().parse().ok()).collect();
+    let dims: Vec<usize> =
+        shape.trim_start_matches([' ', '(']).split(',').filter_map(|s| s.trim().parse().ok()).collect();
     if dims.len() != 2 || dims[1] != 3 {
         return err(path, format!("NPY shape {dims:?}; expected (N, 3)"));
     }
@@ -116,6 +117,9 @@ fn ply_size(t: &str) -> Option<usize> {
     })
 }
 
+/// A PLY element: name, count, properties (name, type).
+type PlyElement = (String, usize, Vec<(String, String)>);
+
 fn read_ply(path: &Path, b: &[u8]) -> Result<Vec<[f32; 3]>, CloudError> {
     let Some(end) = b.windows(11).position(|w| w == b"end_header\n").map(|p| p + 11) else {
         return err(path, "no PLY end_header");
@@ -127,12 +131,24 @@ fn read_ply(path: &Path, b: &[u8]) -> Result<Vec<[f32; 3]>, CloudError> {
     }
     let mut format = "";
     // Elements in order: (name, count, properties (name, type)).
-    let mut elements: Vec<(String, usize, Vec<(String, String)>)> = Vec::new();
+    let mut elements: Vec<PlyElement> = Vec::new();
     for l in lines {
         let t: Vec<&str> = l.split_whitespace().collect();
         match t.as_slice() {
-            ["format", f, ..] => format = if *f == "ascii" { "ascii" } else if *f == "binary_little_endian" { "le" } else { "be" },
-            ["element", name, n] => elements.push((name.to_string(), n.parse().map_err(|_| CloudError(format!("{}: bad element count", path.display())))?, Vec::new())),
+            ["format", f, ..] => {
+                format = if *f == "ascii" {
+                    "ascii"
+                } else if *f == "binary_little_endian" {
+                    "le"
+                } else {
+                    "be"
+                }
+            }
+            ["element", name, n] => elements.push((
+                name.to_string(),
+                n.parse().map_err(|_| CloudError(format!("{}: bad element count", path.display())))?,
+                Vec::new(),
+            )),
             ["property", "list", ..] => match elements.last_mut() {
                 Some(e) if e.0 == "vertex" => return err(path, "list properties on vertices are not supported"),
                 Some(e) => e.2.push(("list".into(), "list".into())),
@@ -152,22 +168,39 @@ fn read_ply(path: &Path, b: &[u8]) -> Result<Vec<[f32; 3]>, CloudError> {
     }
     let (_, n, props) = &elements[vi];
     let idx = |name: &str| props.iter().position(|p| p.0 == name);
-    let (Some(ix), Some(iy), Some(iz)) = (idx("x"), idx("y"), idx("z")) else { return err(path, "vertices without x, y, z") };
+    let (Some(ix), Some(iy), Some(iz)) = (idx("x"), idx("y"), idx("z")) else {
+        return err(path, "vertices without x, y, z");
+    };
     let data = &b[end..];
     let mut out = Vec::with_capacity(*n);
     if format == "ascii" {
         let text = String::from_utf8_lossy(data);
         for (i, l) in text.lines().take(*n).enumerate() {
-            let v: Vec<f32> = l.split_whitespace().map(|s| s.parse::<f32>()).collect::<Result<_, _>>().map_err(|_| CloudError(format!("{}: vertex {i}: not numbers", path.display())))?;
+            let v: Vec<f32> = l
+                .split_whitespace()
+                .map(|s| s.parse::<f32>())
+                .collect::<Result<_, _>>()
+                .map_err(|_| CloudError(format!("{}: vertex {i}: not numbers", path.display())))?;
             if v.len() < props.len() {
                 return err(path, format!("vertex {i}: {} values, {} properties", v.len(), props.len()));
             }
             out.push([v[ix], v[iy], v[iz]]);
         }
     } else {
-        let sizes: Vec<usize> = props.iter().map(|p| ply_size(&p.1)).collect::<Option<_>>().ok_or_else(|| CloudError(format!("{}: unknown property type", path.display())))?;
+        let sizes: Vec<usize> = props
+            .iter()
+            .map(|p| ply_size(&p.1))
+            .collect::<Option<_>>()
+            .ok_or_else(|| CloudError(format!("{}: unknown property type", path.display())))?;
         let stride: usize = sizes.iter().sum();
-        let offs: Vec<usize> = sizes.iter().scan(0, |acc, s| { let o = *acc; *acc += s; Some(o) }).collect();
+        let offs: Vec<usize> = sizes
+            .iter()
+            .scan(0, |acc, s| {
+                let o = *acc;
+                *acc += s;
+                Some(o)
+            })
+            .collect();
         if data.len() < n * stride {
             return err(path, "truncated PLY data");
         }

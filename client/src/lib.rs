@@ -41,6 +41,8 @@ pub type Ipc = ipc_threadsafe::Service;
 type RrFactory<P, R> = rr_factory::PortFactory<Ipc, P, RequestHeader, R, ResponseHeader>;
 type Port<P, R> = IpcClient<Ipc, P, RequestHeader, R, ResponseHeader>;
 type Pending<P, R> = PendingResponse<Ipc, P, RequestHeader, R, ResponseHeader>;
+type NotifyPorts = (Option<event_factory::PortFactory<Ipc>>, Option<Notifier<Ipc>>);
+type SendFn<'a, P, R> = dyn FnMut(&Port<P, R>, RequestHeader) -> Result<Pending<P, R>, Error> + 'a;
 
 /// A failed call: the status code and a message.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -242,7 +244,15 @@ pub enum Table {
 
 impl Default for CloudOptions {
     fn default() -> Self {
-        Self { cloud_frame: "world".into(), up: Some([0.0, 0.0, 1.0]), viewpoint: None, seed: 0, table: None, pregrasp_backoff_m: None, pregrasp_joint_fraction: None }
+        Self {
+            cloud_frame: "world".into(),
+            up: Some([0.0, 0.0, 1.0]),
+            viewpoint: None,
+            seed: 0,
+            table: None,
+            pregrasp_backoff_m: None,
+            pregrasp_joint_fraction: None,
+        }
     }
 }
 
@@ -287,7 +297,10 @@ fn ipc_error(what: &str, e: impl Debug) -> Error {
 macro_rules! open_rr {
     ($node:expr, $opts:expr, $method:expr, $req:ty, $resp:ty) => {{
         let name = $method.service_name(&$opts.prefix);
-        let sname: ServiceName = name.as_str().try_into().map_err(|e| Error::new(StatusCode::InvalidArgument, format!("service name {name}: {e:?}")))?;
+        let sname: ServiceName = name
+            .as_str()
+            .try_into()
+            .map_err(|e| Error::new(StatusCode::InvalidArgument, format!("service name {name}: {e:?}")))?;
         $node
             .service_builder(&sname)
             .request_response::<$req, $resp>()
@@ -298,18 +311,33 @@ macro_rules! open_rr {
     }};
 }
 
-fn open_error(name: &str, prefix: &str, e: iceoryx2::service::builder::request_response::RequestResponseOpenError) -> Error {
+fn open_error(
+    name: &str,
+    prefix: &str,
+    e: iceoryx2::service::builder::request_response::RequestResponseOpenError,
+) -> Error {
     use iceoryx2::service::builder::request_response::RequestResponseOpenError as E;
     match e {
         E::DoesNotExist | E::IsMarkedForDestruction | E::HangsInCreation | E::ServiceInCorruptedState => {
             Error::lost(format!("no graspd serves prefix {prefix:?} ({name}: {e:?})"))
         }
-        E::IncompatibleRequestOrResponseType | E::IncompatibleMessagingPattern | E::IncompatibleAttributes | E::VersionMismatch => Error::new(
+        E::IncompatibleRequestOrResponseType
+        | E::IncompatibleMessagingPattern
+        | E::IncompatibleAttributes
+        | E::VersionMismatch => Error::new(
             StatusCode::FailedPrecondition,
-            format!("{name} speaks another protocol (this client: graspd.v1, protocol {}): {e:?}", proto::PROTOCOL_VERSION),
+            format!(
+                "{name} speaks another protocol (this client: graspd.v1, protocol {}): {e:?}",
+                proto::PROTOCOL_VERSION
+            ),
         ),
-        E::InsufficientPermissions => Error::new(StatusCode::FailedPrecondition, format!("{name}: insufficient permissions (is this user in the daemon's group?)")),
-        E::ExceedsMaxNumberOfNodes | E::DoesNotSupportRequestedAmountOfClients => Error::new(StatusCode::ResourceExhausted, format!("{name}: the daemon's client limit is reached")),
+        E::InsufficientPermissions => Error::new(
+            StatusCode::FailedPrecondition,
+            format!("{name}: insufficient permissions (is this user in the daemon's group?)"),
+        ),
+        E::ExceedsMaxNumberOfNodes | E::DoesNotSupportRequestedAmountOfClients => {
+            Error::new(StatusCode::ResourceExhausted, format!("{name}: the daemon's client limit is reached"))
+        }
         e => Error::new(StatusCode::Internal, format!("{name}: {e:?}")),
     }
 }
@@ -397,19 +425,32 @@ impl Client {
             servers.push(s.node_id);
             CallbackProgression::Continue
         });
-        let daemon = servers.into_iter().find(|id| matches!(Node::<Ipc>::state_of(node.config(), *id), Ok(Some(NodeState::Alive(_))) | Ok(Some(NodeState::Inaccessible(_)))));
+        let daemon = servers.into_iter().find(|id| {
+            matches!(
+                Node::<Ipc>::state_of(node.config(), *id),
+                Ok(Some(NodeState::Alive(_))) | Ok(Some(NodeState::Inaccessible(_)))
+            )
+        });
         if daemon.is_none() {
-            return Err(Error::lost(format!("no graspd serves prefix {:?} (services without a live server)", o.prefix)));
+            return Err(Error::lost(format!(
+                "no graspd serves prefix {:?} (services without a live server)",
+                o.prefix
+            )));
         }
         // Notifiers on the daemon's wake-up event services (dropped below if it polls).
-        let notify = |m: Method| -> Result<(Option<event_factory::PortFactory<Ipc>>, Option<Notifier<Ipc>>), Error> {
+        let notify = |m: Method| -> Result<NotifyPorts, Error> {
             let name = m.notify_service_name(&o.prefix);
             let sname: ServiceName = name.as_str().try_into().map_err(|e| ipc_error("notify service name", e))?;
             let svc = node.service_builder(&sname).event().open().map_err(|e| Error::lost(format!("{name}: {e:?}")))?;
-            let n = svc.notifier_builder().create().map_err(|e| Error::new(StatusCode::ResourceExhausted, format!("{name} notifier: {e:?}")))?;
+            let n = svc
+                .notifier_builder()
+                .create()
+                .map_err(|e| Error::new(StatusCode::ResourceExhausted, format!("{name} notifier: {e:?}")))?;
             Ok((Some(svc), Some(n)))
         };
-        let port_err = |name: &str, e: &dyn Debug| Error::new(StatusCode::ResourceExhausted, format!("client port on {name}: {e:?}"));
+        let port_err = |name: &str, e: &dyn Debug| {
+            Error::new(StatusCode::ResourceExhausted, format!("client port on {name}: {e:?}"))
+        };
         macro_rules! plain {
             ($svc:expr, $m:expr) => {{
                 let svc = $svc;
@@ -433,7 +474,10 @@ impl Client {
         }
         let conn = Connection {
             health: plain!(health_svc, Method::Health),
-            categories: plain!(open_rr!(node, o, Method::ListCategories, NoPayload, proto::CategoriesResponse)?, Method::ListCategories),
+            categories: plain!(
+                open_rr!(node, o, Method::ListCategories, NoPayload, proto::CategoriesResponse)?,
+                Method::ListCategories
+            ),
             register: cloud!(open_rr!(node, o, Method::Register, [Point], proto::RegisterResponse)?, Method::Register),
             grasp: cloud!(open_rr!(node, o, Method::Grasp, [Point], proto::GraspResponse)?, Method::Grasp),
             stats: plain!(open_rr!(node, o, Method::Stats, NoPayload, proto::StatsResponse)?, Method::Stats),
@@ -458,7 +502,14 @@ impl Client {
         let reply = if event_wait {
             let name = proto::reply_service_name(&self.opts.prefix, self.token);
             let sname: ServiceName = name.as_str().try_into().map_err(|e| ipc_error("reply service name", e))?;
-            let svc = self.node.service_builder(&sname).event().max_listeners(1).max_notifiers(2).open_or_create().map_err(|e| ipc_error("reply event service", e))?;
+            let svc = self
+                .node
+                .service_builder(&sname)
+                .event()
+                .max_listeners(1)
+                .max_notifiers(2)
+                .open_or_create()
+                .map_err(|e| ipc_error("reply event service", e))?;
             let l = svc.listener_builder().create().map_err(|e| ipc_error("reply listener", e))?;
             Some((svc, l))
         } else {
@@ -469,7 +520,13 @@ impl Client {
         conn.reply = reply;
         if polls {
             // A polling daemon does not listen: skip the notification (a syscall) per call.
-            for n in [&mut conn.health.notifier, &mut conn.categories.notifier, &mut conn.register.notifier, &mut conn.grasp.notifier, &mut conn.stats.notifier] {
+            for n in [
+                &mut conn.health.notifier,
+                &mut conn.categories.notifier,
+                &mut conn.register.notifier,
+                &mut conn.grasp.notifier,
+                &mut conn.stats.notifier,
+            ] {
                 *n = None;
             }
         }
@@ -540,7 +597,7 @@ impl Client {
         &mut self,
         timeout: Duration,
         select: fn(&Connection) -> &Endpoint<P, R>,
-        send: &mut dyn FnMut(&Port<P, R>, RequestHeader) -> Result<Pending<P, R>, Error>,
+        send: &mut SendFn<'_, P, R>,
         mut edit: impl FnMut(&mut RequestHeader),
     ) -> Result<(ResponseHeader, R), Error> {
         let deadline = Instant::now() + timeout;
@@ -569,12 +626,19 @@ impl Client {
                     attempts,
                 };
                 if out.0.request_id != h.request_id {
-                    return Err(Error::new(StatusCode::Internal, format!("response for request {} to request {}", out.0.request_id, h.request_id)));
+                    return Err(Error::new(
+                        StatusCode::Internal,
+                        format!("response for request {} to request {}", out.0.request_id, h.request_id),
+                    ));
                 }
                 Ok(out)
             });
             match r {
-                Err(e) if e.transport && self.opts.resend_after_restart && Instant::now() + Duration::from_millis(20) < deadline => {
+                Err(e)
+                    if e.transport
+                        && self.opts.resend_after_restart
+                        && Instant::now() + Duration::from_millis(20) < deadline =>
+                {
                     self.conn = None;
                     std::thread::sleep(Duration::from_millis(20));
                 }
@@ -589,14 +653,18 @@ impl Client {
         }
     }
 
-/// One request on the current connection, no reconnection (used while connecting).
-    fn plain_call_once<R: Debug + ZeroCopySend + Copy + 'static>(&mut self, select: fn(&Connection) -> &Endpoint<NoPayload, R>) -> Result<R, Error> {
+    /// One request on the current connection, no reconnection (used while connecting).
+    fn plain_call_once<R: Debug + ZeroCopySend + Copy + 'static>(
+        &mut self,
+        select: fn(&Connection) -> &Endpoint<NoPayload, R>,
+    ) -> Result<R, Error> {
         let timeout = self.opts.default_timeout;
         let deadline = Instant::now() + timeout;
         let h = self.header(unix_ns().saturating_add(timeout.as_nanos() as u64));
         let conn = self.conn.as_ref().ok_or_else(|| Error::lost("not connected"))?;
         let ep = select(conn);
-        let mut req = ep.port.loan_uninit().map_err(|e| Error::new(StatusCode::ResourceExhausted, format!("loan: {e:?}")))?;
+        let mut req =
+            ep.port.loan_uninit().map_err(|e| Error::new(StatusCode::ResourceExhausted, format!("loan: {e:?}")))?;
         *req.user_header_mut() = h;
         let pending = req.write_payload(NoPayload::default()).send().map_err(send_error)?;
         if let Some(n) = &ep.notifier {
@@ -607,10 +675,14 @@ impl Client {
         Ok(body)
     }
 
-    fn plain_call<R: Debug + ZeroCopySend + Copy + 'static>(&mut self, select: fn(&Connection) -> &Endpoint<NoPayload, R>) -> Result<R, Error> {
+    fn plain_call<R: Debug + ZeroCopySend + Copy + 'static>(
+        &mut self,
+        select: fn(&Connection) -> &Endpoint<NoPayload, R>,
+    ) -> Result<R, Error> {
         let timeout = self.opts.default_timeout;
         let mut send = |port: &Port<NoPayload, R>, h: RequestHeader| -> Result<Pending<NoPayload, R>, Error> {
-            let mut req = port.loan_uninit().map_err(|e| Error::new(StatusCode::ResourceExhausted, format!("loan: {e:?}")))?;
+            let mut req =
+                port.loan_uninit().map_err(|e| Error::new(StatusCode::ResourceExhausted, format!("loan: {e:?}")))?;
             *req.user_header_mut() = h;
             req.write_payload(NoPayload::default()).send().map_err(send_error)
         };
@@ -645,7 +717,10 @@ impl Client {
             .map(|c| CategoryInfo {
                 name: proto::text_lossy(&c.name),
                 latent_dim: c.latent_dim,
-                keypoints: c.keypoint_names[..(c.keypoint_count as usize).min(proto::MAX_KEYPOINTS)].iter().map(|n| proto::text_lossy(n)).collect(),
+                keypoints: c.keypoint_names[..(c.keypoint_count as usize).min(proto::MAX_KEYPOINTS)]
+                    .iter()
+                    .map(|n| proto::text_lossy(n))
+                    .collect(),
                 canonical_frame: proto::text_lossy(&c.canonical_frame),
             })
             .collect())
@@ -661,8 +736,18 @@ impl Client {
         self.register_with(category, points, &CloudOptions::default(), timeout)
     }
 
-    pub fn register_with(&mut self, category: &str, points: &[[f32; 3]], opts: &CloudOptions, timeout: Duration) -> Result<Registration, Error> {
-        let (h, body) = self.register_raw(Cloud::Slice(Point::from_arrays(points)), |h| apply_cloud_options(h, category, opts), timeout)?;
+    pub fn register_with(
+        &mut self,
+        category: &str,
+        points: &[[f32; 3]],
+        opts: &CloudOptions,
+        timeout: Duration,
+    ) -> Result<Registration, Error> {
+        let (h, body) = self.register_raw(
+            Cloud::Slice(Point::from_arrays(points)),
+            |h| apply_cloud_options(h, category, opts),
+            timeout,
+        )?;
         status(&h)?;
         Ok(registration(&body.registration, category, &opts.cloud_frame))
     }
@@ -676,7 +761,8 @@ impl Client {
         edit: impl FnMut(&mut RequestHeader),
         timeout: Duration,
     ) -> Result<(ResponseHeader, proto::RegisterResponse), Error> {
-        let mut send = |port: &Port<[Point], proto::RegisterResponse>, h: RequestHeader| send_cloud(port, h, &mut cloud);
+        let mut send =
+            |port: &Port<[Point], proto::RegisterResponse>, h: RequestHeader| send_cloud(port, h, &mut cloud);
         self.call(timeout, |c| &c.register, &mut send, edit)
     }
 
@@ -685,8 +771,18 @@ impl Client {
         self.grasp_with(category, points, &CloudOptions::default(), timeout)
     }
 
-    pub fn grasp_with(&mut self, category: &str, points: &[[f32; 3]], opts: &CloudOptions, timeout: Duration) -> Result<Grasp, Error> {
-        let (h, body) = self.grasp_raw(Cloud::Slice(Point::from_arrays(points)), |h| apply_cloud_options(h, category, opts), timeout)?;
+    pub fn grasp_with(
+        &mut self,
+        category: &str,
+        points: &[[f32; 3]],
+        opts: &CloudOptions,
+        timeout: Duration,
+    ) -> Result<Grasp, Error> {
+        let (h, body) = self.grasp_raw(
+            Cloud::Slice(Point::from_arrays(points)),
+            |h| apply_cloud_options(h, category, opts),
+            timeout,
+        )?;
         status(&h)?;
         Ok(grasp(&body, category, &opts.cloud_frame))
     }
@@ -703,7 +799,12 @@ impl Client {
 
     /// Sends a Register without waiting (for pipelining and tests of the
     /// in-flight limit); collect the answer with [`Client::wait_register`].
-    pub fn start_register(&mut self, category: &str, points: &[[f32; 3]], timeout: Duration) -> Result<PendingRegister, Error> {
+    pub fn start_register(
+        &mut self,
+        category: &str,
+        points: &[[f32; 3]],
+        timeout: Duration,
+    ) -> Result<PendingRegister, Error> {
         self.ensure_connected()?;
         let deadline_unix = unix_ns() + timeout.as_nanos() as u64;
         let mut h = self.header(deadline_unix);
@@ -713,7 +814,12 @@ impl Client {
         if let Some(n) = &conn.register.notifier {
             let _ = n.notify();
         }
-        Ok(PendingRegister { pending, request_id: h.request_id, deadline: Instant::now() + timeout, category: category.to_owned() })
+        Ok(PendingRegister {
+            pending,
+            request_id: h.request_id,
+            deadline: Instant::now() + timeout,
+            category: category.to_owned(),
+        })
     }
 
     pub fn wait_register(&mut self, p: PendingRegister) -> Result<Registration, Error> {
@@ -743,15 +849,21 @@ pub enum Cloud<'a> {
     Generate(usize, &'a mut dyn FnMut(usize) -> Point),
 }
 
-fn send_cloud<R: Debug + ZeroCopySend + Copy>(port: &Port<[Point], R>, h: RequestHeader, cloud: &mut Cloud<'_>) -> Result<Pending<[Point], R>, Error> {
+fn send_cloud<R: Debug + ZeroCopySend + Copy>(
+    port: &Port<[Point], R>,
+    h: RequestHeader,
+    cloud: &mut Cloud<'_>,
+) -> Result<Pending<[Point], R>, Error> {
     let n = match cloud {
         Cloud::Slice(s) => s.len(),
         Cloud::Generate(n, _) => *n,
     };
-    let req = port.loan_slice_uninit(n).map_err(|e| Error::new(StatusCode::ResourceExhausted, format!("cannot loan {n} points of shared memory: {e:?}")))?;
+    let req = port.loan_slice_uninit(n).map_err(|e| {
+        Error::new(StatusCode::ResourceExhausted, format!("cannot loan {n} points of shared memory: {e:?}"))
+    })?;
     let mut req = match cloud {
         Cloud::Slice(s) => req.write_from_slice(s),
-        Cloud::Generate(_, f) => req.write_from_fn(|i| f(i)),
+        Cloud::Generate(_, f) => req.write_from_fn(f),
     };
     *req.user_header_mut() = h;
     req.send().map_err(send_error)
@@ -760,7 +872,9 @@ fn send_cloud<R: Debug + ZeroCopySend + Copy>(port: &Port<[Point], R>, h: Reques
 fn send_error(e: iceoryx2::port::client::RequestSendError) -> Error {
     use iceoryx2::port::client::RequestSendError as E;
     match e {
-        E::ExceedsMaxActiveRequests => Error::new(StatusCode::ResourceExhausted, "too many requests in flight from this client"),
+        E::ExceedsMaxActiveRequests => {
+            Error::new(StatusCode::ResourceExhausted, "too many requests in flight from this client")
+        }
         e => Error::lost(format!("send: {e:?}")),
     }
 }
@@ -812,7 +926,11 @@ fn registration(r: &proto::Registration, category: &str, frame: &str) -> Registr
         cloud_frame: frame.to_owned(),
         points: r.points,
         latent: r.latent[..(r.latent_dim as usize).min(proto::MAX_LATENT)].to_vec(),
-        pose: Pose { frame: "cloud_from_canonical".into(), translation: r.translation_cloud_from_canonical_m, rotation_xyzw: r.rotation_cloud_from_canonical_xyzw },
+        pose: Pose {
+            frame: "cloud_from_canonical".into(),
+            translation: r.translation_cloud_from_canonical_m,
+            rotation_xyzw: r.rotation_cloud_from_canonical_xyzw,
+        },
         scale: r.scale,
         sigma2_m2: r.sigma2_m2,
         fit: Fit {
@@ -831,14 +949,20 @@ fn registration(r: &proto::Registration, category: &str, frame: &str) -> Registr
 
 fn hand(c: &proto::HandConfiguration, actuated: &[String], joints: &[String]) -> HandConfiguration {
     HandConfiguration {
-        wrist_pose: Pose { frame: "cloud_from_wrist".into(), translation: c.translation_cloud_from_wrist_m, rotation_xyzw: c.rotation_cloud_from_wrist_xyzw },
+        wrist_pose: Pose {
+            frame: "cloud_from_wrist".into(),
+            translation: c.translation_cloud_from_wrist_m,
+            rotation_xyzw: c.rotation_cloud_from_wrist_xyzw,
+        },
         actuated: actuated.iter().cloned().zip(c.actuated.iter().copied()).collect(),
         joints: joints.iter().cloned().zip(c.joints.iter().copied()).collect(),
     }
 }
 
 fn grasp(g: &proto::GraspResponse, category: &str, frame: &str) -> Grasp {
-    let names = |v: &[proto::Name], n: u32| -> Vec<String> { v[..(n as usize).min(proto::MAX_JOINTS)].iter().map(|x| proto::text_lossy(x)).collect() };
+    let names = |v: &[proto::Name], n: u32| -> Vec<String> {
+        v[..(n as usize).min(proto::MAX_JOINTS)].iter().map(|x| proto::text_lossy(x)).collect()
+    };
     let (a, j) = (names(&g.actuated_names, g.actuated_count), names(&g.joint_names, g.joint_count));
     let mut warnings = Vec::new();
     if g.warnings & proto::grasp_warning::REGISTRATION_NOT_CONFIDENT != 0 {
@@ -878,7 +1002,8 @@ mod tests {
 
     #[test]
     fn no_daemon_is_unavailable_not_a_hang() {
-        let opts = ClientOptions { prefix: format!("graspd_no_daemon_{}", std::process::id()), ..ClientOptions::default() };
+        let opts =
+            ClientOptions { prefix: format!("graspd_no_daemon_{}", std::process::id()), ..ClientOptions::default() };
         let e = Client::connect(opts).err().expect("no daemon");
         assert_eq!(e.code, StatusCode::Unavailable, "{e}");
     }

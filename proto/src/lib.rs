@@ -56,7 +56,8 @@ pub enum Method {
 }
 
 impl Method {
-    pub const ALL: [Method; 5] = [Method::Health, Method::ListCategories, Method::Register, Method::Grasp, Method::Stats];
+    pub const ALL: [Method; 5] =
+        [Method::Health, Method::ListCategories, Method::Register, Method::Grasp, Method::Stats];
 
     pub fn name(self) -> &'static str {
         match self {

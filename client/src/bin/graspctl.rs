@@ -140,7 +140,11 @@ fn parse_up(s: &str) -> Result<Option<[f32; 3]>, String> {
     if s.eq_ignore_ascii_case("none") {
         return Ok(None);
     }
-    let v: Vec<f32> = s.split(',').map(|x| x.trim().parse::<f32>()).collect::<Result<_, _>>().map_err(|e| format!("--up {s:?}: {e}"))?;
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f32>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("--up {s:?}: {e}"))?;
     match v.as_slice() {
         [x, y, z] => Ok(Some([*x, *y, *z])),
         _ => Err(format!("--up {s:?}: expected x,y,z or none")),
@@ -165,7 +169,10 @@ fn main() -> ExitCode {
                     Failure::Status(s) => (s.code.name(), s.code as u32),
                     Failure::Other(_) => ("CLIENT_ERROR", u32::MAX),
                 };
-                println!("{}", serde_json::json!({"error": {"code": code, "code_value": value, "message": e.message()}}));
+                println!(
+                    "{}",
+                    serde_json::json!({"error": {"code": code, "code_value": value, "message": e.message()}})
+                );
             } else {
                 eprintln!("error: {}", e.message_with_code());
             }
@@ -250,11 +257,22 @@ fn run(cli: &Cli) -> Result<(), Failure> {
             let s = c.stats()?;
             let v = stats_json(&s);
             print(cli.json, &v, || {
-                println!("up {:.1} s, RSS {:.1} MiB, {} clients, {} queued", s.uptime_ns as f64 * 1e-9, s.rss_bytes as f64 / 1048576.0, s.clients_connected, s.queued);
+                println!(
+                    "up {:.1} s, RSS {:.1} MiB, {} clients, {} queued",
+                    s.uptime_ns as f64 * 1e-9,
+                    s.rss_bytes as f64 / 1048576.0,
+                    s.clients_connected,
+                    s.queued
+                );
                 for m in &s.methods[..s.method_count as usize] {
                     println!(
                         "  {:<16} {:>8} requests, {:>6} errors, p50 {:>9.1} µs, p99 {:>9.1} µs, max {:>9.1} µs",
-                        proto::text_lossy(&m.name), m.requests, m.requests - m.by_status[0], m.latency_p50_us, m.latency_p99_us, m.latency_max_us
+                        proto::text_lossy(&m.name),
+                        m.requests,
+                        m.requests - m.by_status[0],
+                        m.latency_p50_us,
+                        m.latency_p99_us,
+                        m.latency_max_us
                     );
                 }
             });
@@ -270,7 +288,14 @@ fn run(cli: &Cli) -> Result<(), Failure> {
                 (false, Some(z)) => Some(graspd_client::Table::At(z)),
                 (false, None) => None,
             };
-            let co = CloudOptions { cloud_frame: a.frame.clone(), up: parse_up(&a.up)?, viewpoint, seed: a.seed, table, ..CloudOptions::default() };
+            let co = CloudOptions {
+                cloud_frame: a.frame.clone(),
+                up: parse_up(&a.up)?,
+                viewpoint,
+                seed: a.seed,
+                table,
+                ..CloudOptions::default()
+            };
             let mut c = Client::connect(opts)?;
             let is_grasp = matches!(cli.command, Command::Grasp(_));
             // The same JSON fields as `graspd register` / `graspd grasp` (what the daemon sends).
@@ -300,7 +325,11 @@ fn run(cli: &Cli) -> Result<(), Failure> {
                     println!("  {:<16} {}", k["name"].as_str().unwrap_or(""), k["position"]);
                 }
                 if is_grasp {
-                    println!("grasp wrist {}, task-space distance {:.3} cm", v["grasp"]["wrist_pose"], v["task_space_distance_cm"].as_f64().unwrap_or(f64::NAN));
+                    println!(
+                        "grasp wrist {}, task-space distance {:.3} cm",
+                        v["grasp"]["wrist_pose"],
+                        v["task_space_distance_cm"].as_f64().unwrap_or(f64::NAN)
+                    );
                     for w in v["warnings"].as_array().into_iter().flatten() {
                         println!("warning: {}", w.as_str().unwrap_or(""));
                     }
@@ -425,7 +454,8 @@ fn bench(cli: &Cli, b: &BenchArgs, opts: ClientOptions) -> Result<(), Failure> {
     };
     let mut v = summary(&shm);
     v["rtt_excl_fill_us"] = serde_json::json!({"p50": pct_us(&shm.rtt_excl_fill, 0.5), "p99": pct_us(&shm.rtt_excl_fill, 0.99), "max": pct_us(&shm.rtt_excl_fill, 1.0)});
-    v["transport_overhead_excl_fill_us"] = serde_json::json!({"p50": pct_us(&shm.overhead_excl_fill, 0.5), "p99": pct_us(&shm.overhead_excl_fill, 0.99)});
+    v["transport_overhead_excl_fill_us"] =
+        serde_json::json!({"p50": pct_us(&shm.overhead_excl_fill, 0.5), "p99": pct_us(&shm.overhead_excl_fill, 0.99)});
     v["method"] = serde_json::json!(match b.method {
         BenchMethod::Register => "register",
         BenchMethod::Health => "health",
@@ -497,8 +527,10 @@ fn bench_uds(path: &std::path::Path, b: &BenchArgs, cloud: &[[f32; 3]]) -> Resul
         }
         s.write_all(&buf).map_err(|e| format!("uds write: {e}"))?;
         s.read_exact(&mut resp).map_err(|e| format!("uds read: {e}"))?;
-        let hdr = ResponseHeader::from_bytes(&resp[..std::mem::size_of::<ResponseHeader>()]).ok_or("uds: short response")?;
-        let _body = proto::RegisterResponse::from_bytes(&resp[std::mem::size_of::<ResponseHeader>()..]).ok_or("uds: short response")?;
+        let hdr =
+            ResponseHeader::from_bytes(&resp[..std::mem::size_of::<ResponseHeader>()]).ok_or("uds: short response")?;
+        let _body = proto::RegisterResponse::from_bytes(&resp[std::mem::size_of::<ResponseHeader>()..])
+            .ok_or("uds: short response")?;
         let rtt = t0.elapsed().as_nanos() as u64;
         if hdr.status != 0 {
             return Err(Error::new(StatusCode::from_u32(hdr.status), proto::text_lossy(&hdr.message)).into());
@@ -538,8 +570,15 @@ fn soak(cli: &Cli, a: &SoakArgs, opts: ClientOptions) -> Result<(), Failure> {
     let timeout = Duration::from_millis(cli.timeout_ms);
     let threads: Vec<_> = (0..a.clients)
         .map(|_| {
-            let (opts, cloud, stop, ok, errors, first_error, category) =
-                (opts.clone(), cloud.clone(), stop.clone(), ok.clone(), errors.clone(), first_error.clone(), a.category.clone());
+            let (opts, cloud, stop, ok, errors, first_error, category) = (
+                opts.clone(),
+                cloud.clone(),
+                stop.clone(),
+                ok.clone(),
+                errors.clone(),
+                first_error.clone(),
+                a.category.clone(),
+            );
             std::thread::spawn(move || {
                 let mut c = match Client::connect(ClientOptions { initial_max_points: cloud.len(), ..opts }) {
                     Ok(c) => c,
@@ -550,7 +589,11 @@ fn soak(cli: &Cli, a: &SoakArgs, opts: ClientOptions) -> Result<(), Failure> {
                     }
                 };
                 while !stop.load(Ordering::Relaxed) {
-                    let r = if grasp { c.grasp(&category, &cloud, timeout).map(|_| ()) } else { c.register(&category, &cloud, timeout).map(|_| ()) };
+                    let r = if grasp {
+                        c.grasp(&category, &cloud, timeout).map(|_| ())
+                    } else {
+                        c.register(&category, &cloud, timeout).map(|_| ())
+                    };
                     match r {
                         Ok(()) => ok.fetch_add(1, Ordering::Relaxed),
                         Err(e) => {
@@ -571,7 +614,9 @@ fn soak(cli: &Cli, a: &SoakArgs, opts: ClientOptions) -> Result<(), Failure> {
             "ok": ok.load(Ordering::Relaxed), "errors": errors.load(Ordering::Relaxed), "clients_connected": s.clients_connected}))
     };
     while t0.elapsed() < Duration::from_secs(a.seconds) {
-        std::thread::sleep(Duration::from_secs(a.every.max(1)).min(Duration::from_secs(a.seconds).saturating_sub(t0.elapsed())));
+        std::thread::sleep(
+            Duration::from_secs(a.every.max(1)).min(Duration::from_secs(a.seconds).saturating_sub(t0.elapsed())),
+        );
         let v = sample(&mut monitor, t0.elapsed().as_secs_f64())?;
         if !cli.json {
             println!("{v}");
@@ -585,7 +630,8 @@ fn soak(cli: &Cli, a: &SoakArgs, opts: ClientOptions) -> Result<(), Failure> {
     let after = sample(&mut monitor, t0.elapsed().as_secs_f64())?;
     // Flatness: the last sample against the first one (after warm-up).
     let get = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap_or(0.0);
-    let (first, last) = (samples.first().cloned().unwrap_or(after.clone()), samples.last().cloned().unwrap_or(after.clone()));
+    let (first, last) =
+        (samples.first().cloned().unwrap_or(after.clone()), samples.last().cloned().unwrap_or(after.clone()));
     let v = serde_json::json!({
         "clients": a.clients, "seconds": a.seconds, "points": cloud.len(), "method": a.method,
         "requests_ok": ok.load(Ordering::Relaxed), "errors": errors.load(Ordering::Relaxed),
@@ -622,7 +668,9 @@ fn registration_cli_json(r: &graspd_client::Registration) -> serde_json::Value {
 }
 
 fn hand_cli_json(h: &graspd_client::HandConfiguration) -> serde_json::Value {
-    let map = |v: &[(String, f64)]| -> serde_json::Map<String, serde_json::Value> { v.iter().map(|(n, q)| (n.clone(), serde_json::json!(q))).collect() };
+    let map = |v: &[(String, f64)]| -> serde_json::Map<String, serde_json::Value> {
+        v.iter().map(|(n, q)| (n.clone(), serde_json::json!(q))).collect()
+    };
     serde_json::json!({
         "wrist_pose": {"translation": h.wrist_pose.translation, "rotation_xyzw": h.wrist_pose.rotation_xyzw},
         "joints": map(&h.joints),

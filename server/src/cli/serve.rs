@@ -31,7 +31,8 @@ pub fn run(a: ServeArgs, process_start: std::time::Instant) -> CliResult {
         config.metrics_interval_s = m;
     }
     config.validate()?;
-    let report = service::serve(config, service::ServeOptions { process_start: Some(process_start), ready_line: a.json })?;
+    let report =
+        service::serve(config, service::ServeOptions { process_start: Some(process_start), ready_line: a.json })?;
     if a.json {
         print_json(&report)?;
     }

@@ -79,7 +79,8 @@ pub enum ConfigError {
 impl Config {
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
         let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.into(), source })?;
-        let cfg: Config = toml::from_str(&text).map_err(|e| ConfigError::Parse { path: path.into(), message: e.to_string() })?;
+        let cfg: Config =
+            toml::from_str(&text).map_err(|e| ConfigError::Parse { path: path.into(), message: e.to_string() })?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -114,7 +115,11 @@ impl Config {
         if self.workers > 256 {
             return bad(format!("workers {}: at most 256", self.workers));
         }
-        for (name, v) in [("slow_request_ms", self.slow_request_ms), ("shutdown_grace_s", self.shutdown_grace_s), ("metrics_interval_s", self.metrics_interval_s)] {
+        for (name, v) in [
+            ("slow_request_ms", self.slow_request_ms),
+            ("shutdown_grace_s", self.shutdown_grace_s),
+            ("metrics_interval_s", self.metrics_interval_s),
+        ] {
             if !v.is_finite() || v < 0.0 {
                 return bad(format!("{name} {v}: a finite number ≥ 0"));
             }

@@ -81,7 +81,9 @@ struct JobMeta {
 
 /// A client's reply notifier: being opened, open, or not openable (retried later).
 enum Reply {
-    Opening { notify_when_open: bool },
+    Opening {
+        notify_when_open: bool,
+    },
     /// The service handle keeps the client's event service open while we notify it.
     Open(#[allow(dead_code)] event_factory::PortFactory<Ipc>, Notifier<Ipc>),
     Failed,
@@ -214,7 +216,13 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl Shared {
-    fn response_header(&self, h: &RequestHeader, status: &Status, received: Instant, compute_ns: u64) -> ResponseHeader {
+    fn response_header(
+        &self,
+        h: &RequestHeader,
+        status: &Status,
+        received: Instant,
+        compute_ns: u64,
+    ) -> ResponseHeader {
         let mut r = ResponseHeader::zeroed();
         r.request_id = h.request_id;
         r.status = status.code as u32;
@@ -284,10 +292,18 @@ impl Shared {
     /// Header checks common to every method.
     fn check_header(&self, h: &RequestHeader) -> Result<(), Status> {
         if h.protocol_version != proto::PROTOCOL_VERSION {
-            return Err(Status::invalid(format!("protocol_version {}; this daemon speaks {}", h.protocol_version, proto::PROTOCOL_VERSION)));
+            return Err(Status::invalid(format!(
+                "protocol_version {}; this daemon speaks {}",
+                h.protocol_version,
+                proto::PROTOCOL_VERSION
+            )));
         }
         if h.flags & !proto::flags::ALL != 0 {
-            return Err(Status::invalid(format!("flags {:#x}: unknown bits (known: {:#x})", h.flags, proto::flags::ALL)));
+            return Err(Status::invalid(format!(
+                "flags {:#x}: unknown bits (known: {:#x})",
+                h.flags,
+                proto::flags::ALL
+            )));
         }
         if Self::deadline_passed(h) {
             return Err(Status::new(StatusCode::DeadlineExceeded, "deadline passed before the request was read"));
@@ -302,15 +318,20 @@ impl Shared {
     fn check_cloud(&self, method: Method, h: &RequestHeader, points: usize) -> Result<usize, Status> {
         let name = proto::name_to_str(&h.category).map_err(|e| Status::invalid(format!("category: {e}")))?;
         proto::name_to_str(&h.cloud_frame).map_err(|e| Status::invalid(format!("cloud_frame: {e}")))?;
-        let category = self
-            .engine
-            .find(name)
-            .ok_or_else(|| Status::new(StatusCode::NotFound, format!("category {name:?} is not served (served: {})", self.engine.names().join(", "))))?;
+        let category = self.engine.find(name).ok_or_else(|| {
+            Status::new(
+                StatusCode::NotFound,
+                format!("category {name:?} is not served (served: {})", self.engine.names().join(", ")),
+            )
+        })?;
         if points == 0 {
             return Err(Status::invalid("empty cloud"));
         }
         if points > self.config.max_points as usize {
-            return Err(Status::new(StatusCode::ResourceExhausted, format!("{points} points; this daemon accepts at most {}", self.config.max_points)));
+            return Err(Status::new(
+                StatusCode::ResourceExhausted,
+                format!("{points} points; this daemon accepts at most {}", self.config.max_points),
+            ));
         }
         let [x, y, z] = h.up_in_cloud;
         if !(x.is_finite() && y.is_finite() && z.is_finite()) {
@@ -325,7 +346,10 @@ impl Shared {
             }
             super::engine::pregrasp_options(h)?;
             if let Err(e) = &self.engine.categories[category].grasp {
-                return Err(Status::new(StatusCode::FailedPrecondition, format!("grasp not available for {name}: {e}")));
+                return Err(Status::new(
+                    StatusCode::FailedPrecondition,
+                    format!("grasp not available for {name}: {e}"),
+                ));
             }
         }
         Ok(category)
@@ -340,7 +364,10 @@ impl Shared {
             if *n == 0 {
                 f.remove(&client);
             }
-            return Err(Status::new(StatusCode::ResourceExhausted, format!("more than {limit} requests in flight from this client")));
+            return Err(Status::new(
+                StatusCode::ResourceExhausted,
+                format!("more than {limit} requests in flight from this client"),
+            ));
         }
         *n += 1;
         drop(f);
@@ -354,7 +381,8 @@ impl Shared {
         r.startup_ns = startup_ns;
         r.pid = std::process::id();
         r.protocol_version = proto::PROTOCOL_VERSION;
-        r.serving = if self.draining.load(Ordering::Relaxed) { proto::serving::DRAINING } else { proto::serving::SERVING };
+        r.serving =
+            if self.draining.load(Ordering::Relaxed) { proto::serving::DRAINING } else { proto::serving::SERVING };
         r.waiting = match self.config.waiting {
             Waiting::Event => proto::waiting::EVENT,
             Waiting::Poll => proto::waiting::POLL,
@@ -390,7 +418,8 @@ impl Shared {
     fn run_job(&self, job: Job) {
         match job {
             Job::Register { req, meta } => {
-                let out = self.run_cloud(Method::Register, &req, &meta, |pts, h| self.engine.register(meta.category, pts, h));
+                let out =
+                    self.run_cloud(Method::Register, &req, &meta, |pts, h| self.engine.register(meta.category, pts, h));
                 self.finish(Method::Register, &req, &meta, out);
             }
             Job::Grasp { req, meta } => {
@@ -402,7 +431,13 @@ impl Shared {
 
     /// Frees the client's in-flight slot, then answers: a client that sends its
     /// next request as soon as it has the answer must find the slot free.
-    fn finish<R: Debug + ZeroCopySend + Copy + Default>(&self, method: Method, req: &CloudReq<R>, meta: &JobMeta, out: Option<(Status, Option<R>, u64)>) {
+    fn finish<R: Debug + ZeroCopySend + Copy + Default>(
+        &self,
+        method: Method,
+        req: &CloudReq<R>,
+        meta: &JobMeta,
+        out: Option<(Status, Option<R>, u64)>,
+    ) {
         self.release(method, meta.client);
         if let Some((status, body, compute_ns)) = out {
             self.answer(method, req, status, body.as_ref(), meta.received, compute_ns);
@@ -422,7 +457,11 @@ impl Shared {
             return None;
         }
         if Self::deadline_passed(&meta.header) {
-            return Some((Status::new(StatusCode::DeadlineExceeded, "deadline passed while the request waited for a worker"), None, 0));
+            return Some((
+                Status::new(StatusCode::DeadlineExceeded, "deadline passed while the request waited for a worker"),
+                None,
+                0,
+            ));
         }
         let t0 = Instant::now();
         // The cloud is read in place from shared memory (the engine converts it once).
@@ -435,7 +474,11 @@ impl Shared {
             Ok(Ok(body)) => (Status::new(StatusCode::Ok, ""), Some(body), compute_ns),
             Ok(Err(s)) => (s, None, compute_ns),
             Err(panic) => {
-                let what = panic.downcast_ref::<&str>().map(|s| s.to_string()).or_else(|| panic.downcast_ref::<String>().cloned()).unwrap_or_default();
+                let what = panic
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| panic.downcast_ref::<String>().cloned())
+                    .unwrap_or_default();
                 tracing::error!("{}: request {} panicked in the engine: {what}", method.name(), meta.header.request_id);
                 (Status::new(StatusCode::Internal, format!("internal error: {what}")), None, compute_ns)
             }
@@ -444,7 +487,9 @@ impl Shared {
 
     /// Reserves one of the `workers` engine slots.
     fn try_reserve(&self) -> bool {
-        self.running.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < self.max_running).then_some(n + 1)).is_ok()
+        self.running
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < self.max_running).then_some(n + 1))
+            .is_ok()
     }
 
     fn unreserve(&self) {
@@ -536,10 +581,18 @@ struct ServiceSpec {
 fn service_spec(cfg: &Config, method: Method) -> Result<ServiceSpec, ServeError> {
     let name = method.service_name(&cfg.service_prefix);
     let sname: ServiceName = ipc!(name.as_str().try_into(), format!("service name {name}"))?;
-    let key: iceoryx2::service::attribute::AttributeKey = ipc!(proto::attribute::PROTOCOL_VERSION.try_into(), "attribute key")?;
-    let value: iceoryx2::service::attribute::AttributeValue = ipc!(proto::PROTOCOL_VERSION.to_string().as_str().try_into(), "attribute value")?;
+    let key: iceoryx2::service::attribute::AttributeKey =
+        ipc!(proto::attribute::PROTOCOL_VERSION.try_into(), "attribute key")?;
+    let value: iceoryx2::service::attribute::AttributeValue =
+        ipc!(proto::PROTOCOL_VERSION.to_string().as_str().try_into(), "attribute value")?;
     let attrs = ipc!(AttributeVerifier::new().require(&key, &value), "attributes")?;
-    Ok(ServiceSpec { name, sname, attrs, clients: cfg.max_clients as usize, active: cfg.max_in_flight_per_client as usize + 4 })
+    Ok(ServiceSpec {
+        name,
+        sname,
+        attrs,
+        clients: cfg.max_clients as usize,
+        active: cfg.max_in_flight_per_client as usize + 4,
+    })
 }
 
 /// Opens or creates a request-response service with the daemon's limits (a
@@ -578,13 +631,21 @@ fn endpoint<P: Debug + IceoryxSend + ?Sized + 'static, R: Debug + ZeroCopySend +
 ) -> Result<Endpoint<P, R>, ServeError> {
     let name = method.service_name(&cfg.service_prefix);
     let server = service.server_builder().create().map_err(|e| {
-        ServeError::Ipc(format!("cannot serve {name}: {e:?} (is another graspd serving prefix {:?}?)", cfg.service_prefix))
+        ServeError::Ipc(format!(
+            "cannot serve {name}: {e:?} (is another graspd serving prefix {:?}?)",
+            cfg.service_prefix
+        ))
     })?;
     let ename = method.notify_service_name(&cfg.service_prefix);
     let esname: ServiceName = ipc!(ename.as_str().try_into(), format!("service name {ename}"))?;
     let clients = cfg.max_clients as usize;
     let event = ipc!(
-        node.service_builder(&esname).event().max_notifiers(clients + 4).max_listeners(2).max_nodes(clients + 4).open_or_create(),
+        node.service_builder(&esname)
+            .event()
+            .max_notifiers(clients + 4)
+            .max_listeners(2)
+            .max_nodes(clients + 4)
+            .open_or_create(),
         format!("cannot create {ename}")
     )?;
     let listener = ipc!(event.listener_builder().create(), format!("listener of {ename}"))?;
@@ -602,7 +663,13 @@ struct Endpoints {
 
 impl Endpoints {
     fn listeners(&self) -> [&Listener<Ipc>; 5] {
-        [&self.health.listener, &self.categories.listener, &self.register.listener, &self.grasp.listener, &self.stats.listener]
+        [
+            &self.health.listener,
+            &self.categories.listener,
+            &self.register.listener,
+            &self.grasp.listener,
+            &self.stats.listener,
+        ]
     }
 
     fn clients_connected(&self) -> u64 {
@@ -654,7 +721,14 @@ fn dispatch(shared: &Shared, ep: &Endpoints, take: bool) -> (usize, Option<Job>)
         handled += 1;
         let t = Instant::now();
         match shared.check_header(req.user_header()) {
-            Ok(()) => shared.answer(Method::ListCategories, &req, Status::new(StatusCode::Ok, ""), Some(&shared.categories()), t, 0),
+            Ok(()) => shared.answer(
+                Method::ListCategories,
+                &req,
+                Status::new(StatusCode::Ok, ""),
+                Some(&shared.categories()),
+                t,
+                0,
+            ),
             Err(s) => shared.answer(Method::ListCategories, &req, s, None, t, 0),
         }
     }
@@ -730,7 +804,11 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
     let background_stop = Arc::new(AtomicBool::new(false));
     cleanup_dead_peers_guarded(&ipc_config);
     let node = ipc!(
-        NodeBuilder::new().name(&node_name).config(&ipc_config).signal_handling_mode(SignalHandlingMode::HandleTerminationRequests).create::<Ipc>(),
+        NodeBuilder::new()
+            .name(&node_name)
+            .config(&ipc_config)
+            .signal_handling_mode(SignalHandlingMode::HandleTerminationRequests)
+            .create::<Ipc>(),
         "cannot create the iceoryx2 node"
     )?;
     // Registers the SIGINT/SIGTERM handlers now (a signal during loading is honoured after it).
@@ -744,14 +822,46 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
 
     let spec = |m| service_spec(&config, m);
     let ep = Endpoints {
-        health: endpoint(&node, &config, Method::Health, create_rr!(node, &spec(Method::Health)?, NoPayload, proto::HealthResponse)?)?,
-        categories: endpoint(&node, &config, Method::ListCategories, create_rr!(node, &spec(Method::ListCategories)?, NoPayload, proto::CategoriesResponse)?)?,
-        register: endpoint(&node, &config, Method::Register, create_rr!(node, &spec(Method::Register)?, [Point], proto::RegisterResponse)?)?,
-        grasp: endpoint(&node, &config, Method::Grasp, create_rr!(node, &spec(Method::Grasp)?, [Point], proto::GraspResponse)?)?,
-        stats: endpoint(&node, &config, Method::Stats, create_rr!(node, &spec(Method::Stats)?, NoPayload, proto::StatsResponse)?)?,
+        health: endpoint(
+            &node,
+            &config,
+            Method::Health,
+            create_rr!(node, &spec(Method::Health)?, NoPayload, proto::HealthResponse)?,
+        )?,
+        categories: endpoint(
+            &node,
+            &config,
+            Method::ListCategories,
+            create_rr!(node, &spec(Method::ListCategories)?, NoPayload, proto::CategoriesResponse)?,
+        )?,
+        register: endpoint(
+            &node,
+            &config,
+            Method::Register,
+            create_rr!(node, &spec(Method::Register)?, [Point], proto::RegisterResponse)?,
+        )?,
+        grasp: endpoint(
+            &node,
+            &config,
+            Method::Grasp,
+            create_rr!(node, &spec(Method::Grasp)?, [Point], proto::GraspResponse)?,
+        )?,
+        stats: endpoint(
+            &node,
+            &config,
+            Method::Stats,
+            create_rr!(node, &spec(Method::Stats)?, NoPayload, proto::StatsResponse)?,
+        )?,
     };
 
-    let reply_node = ipc!(NodeBuilder::new().name(&node_name).config(&ipc_config).signal_handling_mode(SignalHandlingMode::Disabled).create::<Ipc>(), "reply node")?;
+    let reply_node = ipc!(
+        NodeBuilder::new()
+            .name(&node_name)
+            .config(&ipc_config)
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<Ipc>(),
+        "reply node"
+    )?;
     start_janitors(&ipc_config, Duration::from_millis(config.housekeeping_ms), background_stop.clone())?;
     let workers = config.worker_count();
     let (opener_tx, opener_rx) = std::sync::mpsc::channel();
@@ -765,7 +875,11 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
         fatal: Mutex::new(None),
         startup_ns,
         slow_ns: (config.slow_request_ms * 1e6) as u64,
-        notifiers: Mutex::new(Notifiers { entries: HashMap::new(), capacity: 4 * config.max_clients as usize, opener: opener_tx }),
+        notifiers: Mutex::new(Notifiers {
+            entries: HashMap::new(),
+            capacity: 4 * config.max_clients as usize,
+            opener: opener_tx,
+        }),
         engine,
         config,
         stats: Mutex::new(Stats::new()),
@@ -783,7 +897,10 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
             .map_err(|e| ServeError::Ipc(format!("cannot start the reply thread: {e}")))?;
     }
     let _uds = match &shared.config.uds_baseline {
-        Some(path) => Some(super::uds::start(path, shared_engine_handle(&shared)).map_err(|e| ServeError::Ipc(format!("uds baseline {}: {e}", path.display())))?),
+        Some(path) => Some(
+            super::uds::start(path, shared_engine_handle(&shared))
+                .map_err(|e| ServeError::Ipc(format!("uds baseline {}: {e}", path.display())))?,
+        ),
         None => None,
     };
     tracing::info!(
@@ -796,7 +913,10 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
     );
     if opts.ready_line {
         // A machine-readable line for supervisors and tests.
-        println!("{}", serde_json::json!({"ready": true, "prefix": prefix, "startup_ms": startup_ns as f64 * 1e-6, "pid": std::process::id()}));
+        println!(
+            "{}",
+            serde_json::json!({"ready": true, "prefix": prefix, "startup_ms": startup_ns as f64 * 1e-6, "pid": std::process::id()})
+        );
         use std::io::Write;
         let _ = std::io::stdout().flush();
     }
@@ -827,7 +947,12 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
         tracing::warn!(abandoned, "shutdown grace period over with requests still running; leaving them");
     }
     let requests = lock(&shared.stats).methods.iter().map(|m| m.requests).sum();
-    let report = ServeReport { startup_ms: startup_ns as f64 * 1e-6, uptime_s: shared.started.elapsed().as_secs_f64(), requests, abandoned };
+    let report = ServeReport {
+        startup_ms: startup_ns as f64 * 1e-6,
+        uptime_s: shared.started.elapsed().as_secs_f64(),
+        requests,
+        abandoned,
+    };
     tracing::info!(requests, uptime_s = report.uptime_s, "stopped");
     let fatal = lock(&shared.fatal).take();
     match fatal {
@@ -843,7 +968,11 @@ fn shared_engine_handle(shared: &Arc<Shared>) -> super::uds::EngineHandle {
         register: Box::new(move |pts: &[Point], h: &RequestHeader| {
             let category = proto::name_to_str(&h.category)
                 .map_err(|e| Status::invalid(format!("category: {e}")))
-                .and_then(|n| s.engine.find(n).ok_or_else(|| Status::new(StatusCode::NotFound, format!("category {n:?} is not served"))))?;
+                .and_then(|n| {
+                    s.engine
+                        .find(n)
+                        .ok_or_else(|| Status::new(StatusCode::NotFound, format!("category {n:?} is not served")))
+                })?;
             s.engine.register(category, pts, h)
         }),
     }
@@ -863,7 +992,12 @@ pub fn ipc_config() -> iceoryx2::config::Config {
 
 fn janitor_node(config: &iceoryx2::config::Config) -> Option<Node<Ipc>> {
     let name: NodeName = "graspd-janitor".try_into().ok()?;
-    NodeBuilder::new().name(&name).config(config).signal_handling_mode(SignalHandlingMode::Disabled).create::<Ipc>().ok()
+    NodeBuilder::new()
+        .name(&name)
+        .config(config)
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<Ipc>()
+        .ok()
 }
 
 /// Removes the resources of dead iceoryx2 peers, purging abandoned shared
@@ -883,7 +1017,12 @@ fn cleanup_dead_peers_guarded(config: &iceoryx2::config::Config) {
     loop {
         match rx.recv_timeout(Duration::from_millis(300)) {
             Ok(Some(c)) => {
-                tracing::info!(cleanups = c.cleanups, failed = c.failed_cleanups, purged, "removed the stale resources of dead iceoryx2 peers");
+                tracing::info!(
+                    cleanups = c.cleanups,
+                    failed = c.failed_cleanups,
+                    purged,
+                    "removed the stale resources of dead iceoryx2 peers"
+                );
                 return;
             }
             Ok(None) | Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => return,
@@ -901,7 +1040,11 @@ fn cleanup_dead_peers_guarded(config: &iceoryx2::config::Config) {
 /// Background housekeeping: one thread removes dead peers' resources every
 /// `period`, another purges abandoned shared memory every second (which also
 /// frees the first should a cleanup ever block).
-fn start_janitors(config: &iceoryx2::config::Config, period: Duration, stop: Arc<AtomicBool>) -> Result<(), ServeError> {
+fn start_janitors(
+    config: &iceoryx2::config::Config,
+    period: Duration,
+    stop: Arc<AtomicBool>,
+) -> Result<(), ServeError> {
     let cfg = config.clone();
     let s = stop.clone();
     std::thread::Builder::new()
@@ -912,7 +1055,11 @@ fn start_janitors(config: &iceoryx2::config::Config, period: Duration, stop: Arc
                 std::thread::sleep(period);
                 let c = node.try_cleanup_dead_nodes();
                 if c.cleanups > 0 || c.failed_cleanups > 0 {
-                    tracing::info!(cleanups = c.cleanups, failed = c.failed_cleanups, "removed the resources of dead peers");
+                    tracing::info!(
+                        cleanups = c.cleanups,
+                        failed = c.failed_cleanups,
+                        "removed the resources of dead peers"
+                    );
                 }
             }
         })
@@ -924,7 +1071,10 @@ fn start_janitors(config: &iceoryx2::config::Config, period: Duration, stop: Arc
                 std::thread::sleep(Duration::from_secs(1));
                 let n = graspd_proto::hygiene::purge_abandoned_shm(Duration::from_secs(1));
                 if n > 0 {
-                    tracing::info!(removed = n, "removed abandoned shared-memory objects of peers killed while creating them");
+                    tracing::info!(
+                        removed = n,
+                        "removed abandoned shared-memory objects of peers killed while creating them"
+                    );
                 }
             }
         })
@@ -942,7 +1092,10 @@ fn termination_requested() -> bool {
 /// wait to lead. Returns when the daemon stops.
 fn thread_main(shared: &Shared, ep: &Endpoints) {
     let waitset = match shared.config.waiting {
-        Waiting::Event => match WaitSetBuilder::new().signal_handling_mode(SignalHandlingMode::HandleTerminationRequests).create::<Ipc>() {
+        Waiting::Event => match WaitSetBuilder::new()
+            .signal_handling_mode(SignalHandlingMode::HandleTerminationRequests)
+            .create::<Ipc>()
+        {
             Ok(ws) => Some(ws),
             Err(e) => return shared.fail(format!("waitset: {e:?}")),
         },
@@ -985,7 +1138,8 @@ fn thread_main(shared: &Shared, ep: &Endpoints) {
 /// Receives until a Register/Grasp is taken (returned, to run) or the daemon stops (None).
 fn lead(shared: &Shared, ep: &Endpoints, waitset: Option<&WaitSet<Ipc>>, st: &mut LeaderState) -> Option<Job> {
     let housekeeping = Duration::from_millis(shared.config.housekeeping_ms);
-    let metrics = (shared.config.metrics_interval_s > 0.0).then(|| Duration::from_secs_f64(shared.config.metrics_interval_s));
+    let metrics =
+        (shared.config.metrics_interval_s > 0.0).then(|| Duration::from_secs_f64(shared.config.metrics_interval_s));
     let mut last_signal_check = Instant::now();
     let (mut idle_spins, mut idle_since): (u32, Option<Instant>) = (0, None);
     loop {
@@ -1049,7 +1203,8 @@ fn lead(shared: &Shared, ep: &Endpoints, waitset: Option<&WaitSet<Ipc>>, st: &mu
                 // runnable engine thread or client on a busy machine gets it; on an
                 // idle core a yield returns at once).
                 idle_spins += 1;
-                if idle_spins > 512 && idle_since.get_or_insert_with(Instant::now).elapsed() > Duration::from_micros(50) {
+                if idle_spins > 512 && idle_since.get_or_insert_with(Instant::now).elapsed() > Duration::from_micros(50)
+                {
                     std::thread::yield_now();
                 } else {
                     std::hint::spin_loop();

@@ -66,7 +66,11 @@ impl Engine {
         let mut times = Vec::new();
         let hand = HandModel::default_sih().map_err(|e| format!("hand model: {e}")).and_then(|h| {
             if h.num_actuated() > proto::MAX_JOINTS || h.moving_joints().len() > proto::MAX_JOINTS {
-                Err(format!("the hand has more than {} joints; the protocol carries {}", proto::MAX_JOINTS, proto::MAX_JOINTS))
+                Err(format!(
+                    "the hand has more than {} joints; the protocol carries {}",
+                    proto::MAX_JOINTS,
+                    proto::MAX_JOINTS
+                ))
             } else {
                 Ok(h)
             }
@@ -87,10 +91,18 @@ impl Engine {
             let category: Category = name.parse().map_err(|e: crate::tools::ToolsError| err(e.to_string()))?;
             let space = builtin::load_or_build(category, cache_dir, |_, _| {}).map_err(|e| err(e.to_string()))?;
             if space.modes() > proto::MAX_LATENT {
-                return Err(err(format!("{} latent modes; the protocol carries at most {}", space.modes(), proto::MAX_LATENT)));
+                return Err(err(format!(
+                    "{} latent modes; the protocol carries at most {}",
+                    space.modes(),
+                    proto::MAX_LATENT
+                )));
             }
             if space.keypoints.len() > proto::MAX_KEYPOINTS {
-                return Err(err(format!("{} keypoints; the protocol carries at most {}", space.keypoints.len(), proto::MAX_KEYPOINTS)));
+                return Err(err(format!(
+                    "{} keypoints; the protocol carries at most {}",
+                    space.keypoints.len(),
+                    proto::MAX_KEYPOINTS
+                )));
             }
             let mut info = proto::CategoryInfo::zeroed();
             info.name = proto::str_to_name(category.name()).map_err(|e| err(e.to_string()))?;
@@ -129,27 +141,57 @@ impl Engine {
 
     /// Register: the cloud (read once from the caller's memory, converted and
     /// checked here) → latent, pose, fit, keypoints.
-    pub fn register(&self, category: usize, points: &[proto::Point], header: &proto::RequestHeader) -> Result<proto::RegisterResponse, Status> {
-        let c = self.categories.get(category).ok_or_else(|| Status::new(StatusCode::Internal, "category index out of range"))?;
+    pub fn register(
+        &self,
+        category: usize,
+        points: &[proto::Point],
+        header: &proto::RequestHeader,
+    ) -> Result<proto::RegisterResponse, Status> {
+        let c = self
+            .categories
+            .get(category)
+            .ok_or_else(|| Status::new(StatusCode::Internal, "category index out of range"))?;
         let cloud = convert_cloud(points)?;
         let opts = register_options(header)?;
-        let reg = c.registrar.register(&cloud, &opts).map_err(|e| Status::invalid(format!("cannot register the cloud: {e}")))?;
+        let reg = c
+            .registrar
+            .register(&cloud, &opts)
+            .map_err(|e| Status::invalid(format!("cannot register the cloud: {e}")))?;
         Ok(proto::RegisterResponse { registration: registration_to_wire(&reg, points.len()) })
     }
 
     /// Grasp: registration, the category's demonstration carried onto the
     /// registered shape, the hand solved onto it, and the pre-grasp (what
     /// `graspd grasp` does, in one call).
-    pub fn grasp(&self, category: usize, points: &[proto::Point], header: &proto::RequestHeader) -> Result<proto::GraspResponse, Status> {
-        let c = self.categories.get(category).ok_or_else(|| Status::new(StatusCode::Internal, "category index out of range"))?;
-        let hand = self.hand.as_ref().map_err(|e| Status::new(StatusCode::FailedPrecondition, format!("grasp not available: {e}")))?;
-        let assets = c.grasp.as_ref().map_err(|e| Status::new(StatusCode::FailedPrecondition, format!("grasp not available for {}: {e}", c.category.name())))?;
+    pub fn grasp(
+        &self,
+        category: usize,
+        points: &[proto::Point],
+        header: &proto::RequestHeader,
+    ) -> Result<proto::GraspResponse, Status> {
+        let c = self
+            .categories
+            .get(category)
+            .ok_or_else(|| Status::new(StatusCode::Internal, "category index out of range"))?;
+        let hand = self
+            .hand
+            .as_ref()
+            .map_err(|e| Status::new(StatusCode::FailedPrecondition, format!("grasp not available: {e}")))?;
+        let assets = c.grasp.as_ref().map_err(|e| {
+            Status::new(StatusCode::FailedPrecondition, format!("grasp not available for {}: {e}", c.category.name()))
+        })?;
         let cloud = convert_cloud(points)?;
         let opts = register_options(header)?;
         let pre = pregrasp_options(header)?;
-        let reg = c.registrar.register(&cloud, &opts).map_err(|e| Status::invalid(format!("cannot register the cloud: {e}")))?;
-        let tool = TransferredTool::from_registration(&c.registrar, &reg, &assets.demo_keypoints, &assets.canonical_mesh)
-            .map_err(|e| Status::invalid(format!("cannot carry the demonstration onto the registered shape: {e}")))?;
+        let reg = c
+            .registrar
+            .register(&cloud, &opts)
+            .map_err(|e| Status::invalid(format!("cannot register the cloud: {e}")))?;
+        let tool =
+            TransferredTool::from_registration(&c.registrar, &reg, &assets.demo_keypoints, &assets.canonical_mesh)
+                .map_err(|e| {
+                    Status::invalid(format!("cannot carry the demonstration onto the registered shape: {e}"))
+                })?;
         let mut warnings = 0;
         if !reg.fit.confident {
             warnings |= proto::grasp_warning::REGISTRATION_NOT_CONFIDENT;
@@ -168,7 +210,8 @@ impl Engine {
             }
         };
         let mut solver = GraspSolver::new(hand, SolveOptions { seed: header.seed, ..SolveOptions::default() });
-        let out = solve_transferred(&mut solver, &assets.demo, &tool, table_z, &pre).map_err(|e| Status::invalid(format!("cannot solve the grasp: {e}")))?;
+        let out = solve_transferred(&mut solver, &assets.demo, &tool, table_z, &pre)
+            .map_err(|e| Status::invalid(format!("cannot solve the grasp: {e}")))?;
         if !out.pregrasp.collision_free {
             warnings |= proto::grasp_warning::PREGRASP_IN_COLLISION;
         }
@@ -188,7 +231,8 @@ impl Engine {
         r.residual_mean_m = out.report.residual_mm.mean * 1e-3;
         r.residual_max_m = out.report.residual_mm.max * 1e-3;
         r.penetration_m = out.report.penetration_mm * 1e-3;
-        r.pregrasp_min_clearance_m = if out.pregrasp.min_clearance_m.is_finite() { out.pregrasp.min_clearance_m } else { f64::MAX };
+        r.pregrasp_min_clearance_m =
+            if out.pregrasp.min_clearance_m.is_finite() { out.pregrasp.min_clearance_m } else { f64::MAX };
         r.pregrasp_collision_free = out.pregrasp.collision_free as u32;
         r.table_used = table_z.is_some() as u32;
         r.table_z_m = table_z.unwrap_or(0.0);

@@ -19,7 +19,15 @@ pub struct MethodCounters {
 
 impl MethodCounters {
     fn new() -> Self {
-        Self { requests: 0, by_status: [0; 16], slow: 0, in_flight: 0, server_ns: Vec::with_capacity(WINDOW), compute_ns: Vec::with_capacity(WINDOW), next: 0 }
+        Self {
+            requests: 0,
+            by_status: [0; 16],
+            slow: 0,
+            in_flight: 0,
+            server_ns: Vec::with_capacity(WINDOW),
+            compute_ns: Vec::with_capacity(WINDOW),
+            next: 0,
+        }
     }
 }
 
@@ -48,7 +56,14 @@ impl Stats {
     }
 
     /// Records an answer; returns true when it was slow.
-    pub fn record(&mut self, method: Method, status: StatusCode, server_ns: u64, compute_ns: u64, slow_ns: u64) -> bool {
+    pub fn record(
+        &mut self,
+        method: Method,
+        status: StatusCode,
+        server_ns: u64,
+        compute_ns: u64,
+        slow_ns: u64,
+    ) -> bool {
         let m = &mut self.methods[method as usize];
         m.requests += 1;
         m.by_status[(status as usize).min(15)] += 1;
