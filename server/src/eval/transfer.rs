@@ -239,22 +239,26 @@ pub fn chamfer_mm(a: &[P3], b: &[P3]) -> f64 {
     0.5 * (one_way(a, b) + one_way(b, a)) * 1e3
 }
 
+/// Value at fraction `q` of sorted, non-empty `v` (index rounded).
+fn quantile_sorted(v: &[f64], q: f64) -> f64 {
+    v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
 pub fn percentiles(mut v: Vec<f64>) -> Percentiles {
     v.retain(|x| x.is_finite());
     if v.is_empty() {
         return Percentiles { median: f64::NAN, p90: f64::NAN, mean: f64::NAN };
     }
     v.sort_by(f64::total_cmp);
-    let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
-    Percentiles { median: at(0.5), p90: at(0.9), mean: v.iter().sum::<f64>() / v.len() as f64 }
+    Percentiles { median: quantile_sorted(&v, 0.5), p90: quantile_sorted(&v, 0.9), mean: v.iter().sum::<f64>() / v.len() as f64 }
 }
 
+/// (p50, p99, max) of `v`, NaN when empty.
 fn percentiles_raw(mut v: Vec<f64>) -> (f64, f64, f64) {
     if v.is_empty() {
         return (f64::NAN, f64::NAN, f64::NAN);
     }
     v.sort_by(f64::total_cmp);
-    let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
-    (at(0.5), at(0.99), v[v.len() - 1])
+    (quantile_sorted(&v, 0.5), quantile_sorted(&v, 0.99), v[v.len() - 1])
 }
 
