@@ -3,14 +3,16 @@
 use std::process::Command;
 
 fn graspd(args: &[&str]) -> std::process::Output {
-    let out = Command::new(env!("CARGO_BIN_EXE_graspd")).args(args).env("GRASPD_LOG", "warn").output().expect("graspd runs");
+    let out =
+        Command::new(env!("CARGO_BIN_EXE_graspd")).args(args).env("GRASPD_LOG", "warn").output().expect("graspd runs");
     out
 }
 
 fn json(args: &[&str]) -> serde_json::Value {
     let out = graspd(args);
     assert!(out.status.success(), "graspd {args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
-    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("graspd {args:?}: not JSON ({e}): {}", String::from_utf8_lossy(&out.stdout)))
+    serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("graspd {args:?}: not JSON ({e}): {}", String::from_utf8_lossy(&out.stdout)))
 }
 
 #[test]
@@ -19,7 +21,9 @@ fn assets_list_reports_the_seeded_splits() {
     let cats: Vec<&str> = v["categories"].as_array().unwrap().iter().map(|c| c["name"].as_str().unwrap()).collect();
     assert_eq!(cats, ["mug", "drill", "hammer"]);
     for c in cats {
-        let count = |split: &str| v["instances"].as_array().unwrap().iter().filter(|i| i["category"] == c && i["split"] == split).count();
+        let count = |split: &str| {
+            v["instances"].as_array().unwrap().iter().filter(|i| i["category"] == c && i["split"] == split).count()
+        };
         assert_eq!((count("canonical"), count("train"), count("test")), (1, 10, 3), "{c}");
     }
 }
@@ -35,7 +39,11 @@ fn assets_generate_is_byte_for_byte_deterministic_and_matches_the_committed_asse
     for rel in ["manifest.json", "mug/mug_canonical.obj", "drill/drill_test_02.obj", "hammer/hammer_train_07.obj"] {
         let x = std::fs::read(a.path().join(rel)).unwrap();
         assert_eq!(x, std::fs::read(b.path().join(rel)).unwrap(), "{rel} differs between runs");
-        assert_eq!(x, std::fs::read(committed.join(rel)).unwrap(), "{rel} differs from the committed asset: run `graspd assets generate`");
+        assert_eq!(
+            x,
+            std::fs::read(committed.join(rel)).unwrap(),
+            "{rel} differs from the committed asset: run `graspd assets generate`"
+        );
     }
 }
 
@@ -44,11 +52,31 @@ fn cloud_renders_a_partial_view_that_register_accepts() {
     let dir = tempfile::tempdir().unwrap();
     let mesh = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/tools/mug/mug_test_01.obj");
     let cloud = dir.path().join("view.ply");
-    let v = json(&["cloud", "--mesh", mesh.to_str().unwrap(), "--view", "3", "--seed", "5", "--out", cloud.to_str().unwrap(), "--json"]);
+    let v = json(&[
+        "cloud",
+        "--mesh",
+        mesh.to_str().unwrap(),
+        "--view",
+        "3",
+        "--seed",
+        "5",
+        "--out",
+        cloud.to_str().unwrap(),
+        "--json",
+    ]);
     let n = v["points"].as_u64().unwrap();
     assert!(n > 2000, "{n} points");
     let shape = dir.path().join("shape.ply");
-    let r = json(&["register", "--category", "mug", "--cloud", cloud.to_str().unwrap(), "--shape-out", shape.to_str().unwrap(), "--json"]);
+    let r = json(&[
+        "register",
+        "--category",
+        "mug",
+        "--cloud",
+        cloud.to_str().unwrap(),
+        "--shape-out",
+        shape.to_str().unwrap(),
+        "--json",
+    ]);
     assert_eq!(r["keypoints"].as_array().unwrap().len(), 6);
     assert_eq!(r["pose"]["rotation_xyzw"].as_array().unwrap().len(), 4);
     assert!(r["fit"]["confident"].as_bool().unwrap(), "{}", r["fit"]);

@@ -251,7 +251,10 @@ fn concurrent_clients_get_the_same_answers_as_the_cli() {
     let mtime = |p: &Path| std::fs::metadata(p).and_then(|m| m.modified()).ok();
     let fresh = matches!((mtime(&graspctl), mtime(Path::new(GRASPD))), (Some(a), Some(b)) if a >= b);
     if !fresh {
-        eprintln!("skipping the graspctl check: {} is absent or older than graspd (cargo build --release -p graspd-client)", graspctl.display());
+        eprintln!(
+            "skipping the graspctl check: {} is absent or older than graspd (cargo build --release -p graspd-client)",
+            graspctl.display()
+        );
     }
     if fresh {
         let out = Command::new(&graspctl)

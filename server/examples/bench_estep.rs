@@ -9,7 +9,9 @@ fn main() {
         let mut p = Posteriors::default();
         let reps = 20_000_000 / (n * m) + 1;
         let t = std::time::Instant::now();
-        for _ in 0..reps { e.run(&y, 0.5, 0.1, &mut p); }
+        for _ in 0..reps {
+            e.run(&y, 0.5, 0.1, &mut p);
+        }
         let dt = t.elapsed().as_secs_f64() / reps as f64;
         println!("{n}x{m}: {:.1} us per E-step, {:.2} ns per pair", dt * 1e6, dt * 1e9 / (n * m) as f64);
     }

@@ -4,8 +4,8 @@
 //! the repository root for the data flow from a point cloud to an action.
 
 pub mod eval;
-pub mod grasp;
 pub mod geometry;
+pub mod grasp;
 pub mod hand;
 pub mod io;
 pub mod service;

@@ -30,7 +30,12 @@ pub fn run(cmd: AssetsCommand) -> CliResult {
                 print_json(&manifest)?;
             } else {
                 let n: usize = Category::ALL.len();
-                println!("wrote {} instances of {n} categories to {} in {:.2} s", manifest.instances.len(), out.display(), t0.elapsed().as_secs_f64());
+                println!(
+                    "wrote {} instances of {n} categories to {} in {:.2} s",
+                    manifest.instances.len(),
+                    out.display(),
+                    t0.elapsed().as_secs_f64()
+                );
             }
         }
         AssetsCommand::List { json } => {
@@ -55,7 +60,13 @@ pub fn run(cmd: AssetsCommand) -> CliResult {
                 }))?;
             } else {
                 for r in rows {
-                    println!("{:<8} {:<20} {:<10} {}", r["category"].as_str().unwrap_or(""), r["instance"].as_str().unwrap_or(""), r["split"].as_str().unwrap_or(""), r["path"].as_str().unwrap_or(""));
+                    println!(
+                        "{:<8} {:<20} {:<10} {}",
+                        r["category"].as_str().unwrap_or(""),
+                        r["instance"].as_str().unwrap_or(""),
+                        r["split"].as_str().unwrap_or(""),
+                        r["path"].as_str().unwrap_or("")
+                    );
                 }
             }
         }

@@ -56,7 +56,14 @@ pub fn run(a: CpdArgs) -> CliResult {
             "source_points": src.len(), "target_points": dst.len(),
         })
     } else {
-        let opts = NonRigidOptions { em, beta: a.beta, lambda: a.lambda, max_rank: a.max_rank, rank_tol: a.rank_tol, ..Default::default() };
+        let opts = NonRigidOptions {
+            em,
+            beta: a.beta,
+            lambda: a.lambda,
+            max_rank: a.max_rank,
+            rank_tol: a.rank_tol,
+            ..Default::default()
+        };
         let r = cpd::non_rigid(&src, &dst, &opts)?;
         graspd::io::write_cloud(&a.out, &r.moved)?;
         serde_json::json!({
@@ -68,7 +75,13 @@ pub fn run(a: CpdArgs) -> CliResult {
     if a.json {
         print_json(&out)?;
     } else {
-        println!("{} iterations, sigma2 {:.3e} m², {:.1} ms -> {}", out["iterations"], out["sigma2"].as_f64().unwrap_or(f64::NAN), out["elapsed_ms"].as_f64().unwrap_or(f64::NAN), a.out.display());
+        println!(
+            "{} iterations, sigma2 {:.3e} m², {:.1} ms -> {}",
+            out["iterations"],
+            out["sigma2"].as_f64().unwrap_or(f64::NAN),
+            out["elapsed_ms"].as_f64().unwrap_or(f64::NAN),
+            a.out.display()
+        );
     }
     Ok(())
 }

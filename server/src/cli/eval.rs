@@ -87,7 +87,18 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             }
         }
         EvalCommand::Grasp(a) => return super::grasp::run_eval(a),
-        EvalCommand::Transfer { category, views, noise_mm, outliers, scale_jitter, on_side, full_surface, unknown_viewpoint, seed, json } => {
+        EvalCommand::Transfer {
+            category,
+            views,
+            noise_mm,
+            outliers,
+            scale_jitter,
+            on_side,
+            full_surface,
+            unknown_viewpoint,
+            seed,
+            json,
+        } => {
             let category: Category = category.parse()?;
             let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
             let registrar = Registrar::new(space);

@@ -1,7 +1,7 @@
 use super::space::spaces_dir;
 use super::{print_json, CliResult};
 use clap::Args;
-use graspd::shape::{builtin, Registrar, RegisterOptions};
+use graspd::shape::{builtin, RegisterOptions, Registrar};
 use graspd::tools::Category;
 use std::path::PathBuf;
 
@@ -31,7 +31,11 @@ pub fn parse_up(s: &str) -> Result<Option<[f64; 3]>, String> {
     if s.eq_ignore_ascii_case("none") {
         return Ok(None);
     }
-    let v: Vec<f64> = s.split(',').map(|x| x.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|e| format!("--up {s:?}: {e}"))?;
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("--up {s:?}: {e}"))?;
     match v.as_slice() {
         [x, y, z] if (x * x + y * y + z * z) > 1e-12 && v.iter().all(|a| a.is_finite()) => Ok(Some([*x, *y, *z])),
         _ => Err(format!("--up {s:?}: expected three numbers, not all zero, or \"none\"")),
@@ -76,8 +80,12 @@ pub fn run(a: RegisterArgs) -> CliResult {
     } else {
         println!(
             "{}: scale {:.3}, inliers {:.1}%, residual {:.2} mm, {} ({:.1} ms)",
-            category.name(), reg.scale, reg.fit.inlier_fraction * 100.0, reg.fit.residual_mm,
-            if reg.fit.confident { "confident" } else { "POOR FIT" }, reg.elapsed_ms
+            category.name(),
+            reg.scale,
+            reg.fit.inlier_fraction * 100.0,
+            reg.fit.residual_mm,
+            if reg.fit.confident { "confident" } else { "POOR FIT" },
+            reg.elapsed_ms
         );
         for k in &reg.keypoints {
             println!("  {:<16} {:>9.4} {:>9.4} {:>9.4}", k.name, k.position[0], k.position[1], k.position[2]);

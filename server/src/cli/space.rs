@@ -43,8 +43,14 @@ pub fn run(cmd: SpaceCommand) -> CliResult {
             } else {
                 println!(
                     "{}: {} instances, {} points, {} modes (explained {:.3}), kernel rank {}, {:.2} s -> {}",
-                    report.category, report.instances, report.points, report.modes,
-                    report.explained_variance.last().copied().unwrap_or(0.0), report.kernel_rank, report.build_s, path.display()
+                    report.category,
+                    report.instances,
+                    report.points,
+                    report.modes,
+                    report.explained_variance.last().copied().unwrap_or(0.0),
+                    report.kernel_rank,
+                    report.build_s,
+                    path.display()
                 );
             }
         }

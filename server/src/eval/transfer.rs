@@ -13,7 +13,7 @@ use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics
 use crate::geometry::sample_points;
 use crate::shape::cpd::{self, EmOptions, NonRigidOptions};
 use crate::shape::estep::P3;
-use crate::shape::{Registrar, RegisterOptions};
+use crate::shape::{RegisterOptions, Registrar};
 use crate::tools::{Instance, Split};
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use kiddo::SquaredEuclidean;
@@ -43,7 +43,17 @@ pub struct TransferEvalOptions {
 
 impl Default for TransferEvalOptions {
     fn default() -> Self {
-        Self { views: 8, noise: DepthNoise::default(), outliers: 0.0, scale_jitter: 0.0, on_side: false, full_surface: false, seed: 7, register: RegisterOptions::default(), known_viewpoint: true }
+        Self {
+            views: 8,
+            noise: DepthNoise::default(),
+            outliers: 0.0,
+            scale_jitter: 0.0,
+            on_side: false,
+            full_surface: false,
+            seed: 7,
+            register: RegisterOptions::default(),
+            known_viewpoint: true,
+        }
     }
 }
 
@@ -96,7 +106,13 @@ struct Trial {
 }
 
 /// Runs the evaluation on the instances of one split.
-pub fn evaluate(registrar: &Registrar, instances: &[&Instance], split: Split, opts: &TransferEvalOptions, mut progress: impl FnMut()) -> SplitReport {
+pub fn evaluate(
+    registrar: &Registrar,
+    instances: &[&Instance],
+    split: Split,
+    opts: &TransferEvalOptions,
+    mut progress: impl FnMut(),
+) -> SplitReport {
     let mut trials = Vec::new();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed);
     for inst in instances {
@@ -125,15 +141,28 @@ pub fn evaluate(registrar: &Registrar, instances: &[&Instance], split: Split, op
         confident_fraction: trials.iter().filter(|t| t.confident).count() as f64 / trials.len().max(1) as f64,
         rotation_error_deg: percentiles(trials.iter().map(|t| t.rotation_error_deg).collect()),
         ambiguous_fraction: trials.iter().filter(|t| t.ambiguous).count() as f64 / trials.len().max(1) as f64,
-        unambiguous_keypoint_error_mm: percentiles(trials.iter().filter(|t| !t.ambiguous).flat_map(|t| t.kp[0].iter().copied()).collect()),
+        unambiguous_keypoint_error_mm: percentiles(
+            trials.iter().filter(|t| !t.ambiguous).flat_map(|t| t.kp[0].iter().copied()).collect(),
+        ),
     }
 }
 
-fn trial(registrar: &Registrar, inst: &Instance, truth_surface: &[P3], view: usize, opts: &TransferEvalOptions, rng: &mut rand_chacha::ChaCha8Rng) -> Option<Trial> {
+fn trial(
+    registrar: &Registrar,
+    inst: &Instance,
+    truth_surface: &[P3],
+    view: usize,
+    opts: &TransferEvalOptions,
+    rng: &mut rand_chacha::ChaCha8Rng,
+) -> Option<Trial> {
     // Place the tool: random yaw and position on the table, optional scale and side rest.
     let scale = 1.0 + opts.scale_jitter * (2.0 * rng.random::<f64>() - 1.0);
     let yaw = rng.random::<f64>() * std::f64::consts::TAU;
-    let base = if opts.on_side { UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_2) } else { UnitQuaternion::identity() };
+    let base = if opts.on_side {
+        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_2)
+    } else {
+        UnitQuaternion::identity()
+    };
     let mut mesh = inst.mesh.clone();
     mesh.map_vertices(|p| Point3::from(p.coords * scale));
     let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw) * base;
@@ -173,7 +202,9 @@ fn trial(registrar: &Registrar, inst: &Instance, truth_surface: &[P3], view: usi
     let ours_shape = cpd::to_p3(&registrar.completed_shape(&reg));
 
     // Baseline 1: the undeformed canonical, pose fitted by the same machinery.
-    let canon = registrar.register(&cloud, &RegisterOptions { seed: rng.random(), fit_latent: false, viewpoint, ..opts.register }).ok()?;
+    let canon = registrar
+        .register(&cloud, &RegisterOptions { seed: rng.random(), fit_latent: false, viewpoint, ..opts.register })
+        .ok()?;
     let canon_kp: Vec<P3> = canon.keypoints.iter().map(|k| k.position).collect();
     let canon_shape = cpd::to_p3(&registrar.completed_shape(&canon));
 
@@ -184,14 +215,21 @@ fn trial(registrar: &Registrar, inst: &Instance, truth_surface: &[P3], view: usi
     let nr = cpd::non_rigid(
         &placed_surface.iter().step_by(4).copied().collect::<Vec<_>>(),
         &cloud.iter().step_by(stride).copied().collect::<Vec<_>>(),
-        &NonRigidOptions { em: EmOptions { w: 0.1, max_iters: 80, tol: 1e-5 }, beta: 0.35, lambda: 1.0, ..Default::default() },
+        &NonRigidOptions {
+            em: EmOptions { w: 0.1, max_iters: 80, tol: 1e-5 },
+            beta: 0.35,
+            lambda: 1.0,
+            ..Default::default()
+        },
     )
     .ok()?;
     let cpd_kp = nr.field.apply(&placed_kp);
     let cpd_shape = nr.field.apply(&cpd::to_p3(&placed_surface));
 
     let rotation_error_deg = (reg.rotation_cloud_from_canonical * rot.inverse()).angle().to_degrees();
-    let kp_err = |pred: &[P3]| pred.iter().zip(&truth_kp).map(|(a, b)| crate::shape::estep::dist2(a, b).sqrt() * 1e3).collect::<Vec<_>>();
+    let kp_err = |pred: &[P3]| {
+        pred.iter().zip(&truth_kp).map(|(a, b)| crate::shape::estep::dist2(a, b).sqrt() * 1e3).collect::<Vec<_>>()
+    };
     Some(Trial {
         points: cloud.len(),
         kp: [kp_err(&ours_kp), kp_err(&canon_kp), kp_err(&cpd_kp)],
@@ -223,7 +261,11 @@ pub fn add_outliers(cloud: &mut Vec<Point3<f64>>, fraction: f64, rng: &mut rand_
     let (lo, hi) = (lo - pad, hi + pad);
     let n = (cloud.len() as f64 * fraction).round() as usize;
     for _ in 0..n {
-        cloud.push(Point3::new(rng.random_range(lo.x..=hi.x), rng.random_range(lo.y..=hi.y), rng.random_range(lo.z..=hi.z)));
+        cloud.push(Point3::new(
+            rng.random_range(lo.x..=hi.x),
+            rng.random_range(lo.y..=hi.y),
+            rng.random_range(lo.z..=hi.z),
+        ));
     }
 }
 
@@ -250,7 +292,11 @@ pub fn percentiles(mut v: Vec<f64>) -> Percentiles {
         return Percentiles { median: f64::NAN, p90: f64::NAN, mean: f64::NAN };
     }
     v.sort_by(f64::total_cmp);
-    Percentiles { median: quantile_sorted(&v, 0.5), p90: quantile_sorted(&v, 0.9), mean: v.iter().sum::<f64>() / v.len() as f64 }
+    Percentiles {
+        median: quantile_sorted(&v, 0.5),
+        p90: quantile_sorted(&v, 0.9),
+        mean: v.iter().sum::<f64>() / v.len() as f64,
+    }
 }
 
 /// (p50, p99, max) of `v`, NaN when empty.
@@ -261,4 +307,3 @@ fn percentiles_raw(mut v: Vec<f64>) -> (f64, f64, f64) {
     v.sort_by(f64::total_cmp);
     (quantile_sorted(&v, 0.5), quantile_sorted(&v, 0.99), v[v.len() - 1])
 }
-

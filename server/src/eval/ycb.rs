@@ -7,7 +7,7 @@ use super::transfer::{chamfer_mm, percentiles, Percentiles};
 use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
 use crate::geometry::sample_points;
 use crate::shape::cpd::to_p3;
-use crate::shape::{Registrar, RegisterOptions};
+use crate::shape::{RegisterOptions, Registrar};
 use crate::tools::Category;
 use nalgebra::{Isometry3, Point3};
 use serde::Serialize;
@@ -35,16 +35,24 @@ pub struct YcbReport {
     pub fit_ms: Percentiles,
 }
 
-pub fn evaluate(registrar: &Registrar, category: Category, mesh_path: &Path, views: usize, seed: u64) -> Result<YcbReport, Box<dyn std::error::Error>> {
+pub fn evaluate(
+    registrar: &Registrar,
+    category: Category,
+    mesh_path: &Path,
+    views: usize,
+    seed: u64,
+) -> Result<YcbReport, Box<dyn std::error::Error>> {
     let mesh = crate::io::read_mesh(mesh_path)?.mesh;
     let truth = to_p3(&sample_points(&mesh, 4000, 99)?);
     let (lo, _) = mesh.aabb().ok_or("empty mesh")?;
     let centre = mesh.aabb().map(|(lo, hi)| Point3::from((lo.coords + hi.coords) / 2.0)).ok_or("empty mesh")?;
     let scene = Scene::new(&mesh, Isometry3::identity(), Some(lo.z))?;
-    let (mut chamfer, mut inliers, mut scale, mut ms, mut confident) = (Vec::new(), Vec::new(), Vec::new(), Vec::new(), 0);
+    let (mut chamfer, mut inliers, mut scale, mut ms, mut confident) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new(), 0);
     for view in 0..views {
         let pose = standard_view(view, views, centre, mesh.diagonal(), Intrinsics::default())?;
-        let cam = DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: pose, noise: DepthNoise::default() };
+        let cam =
+            DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: pose, noise: DepthNoise::default() };
         let cloud = cam.capture(&scene, seed + view as u64)?.points_world;
         let reg = registrar.register(&cloud, &RegisterOptions { seed: seed + view as u64, ..Default::default() })?;
         chamfer.push(chamfer_mm(&to_p3(&registrar.completed_shape(&reg)), &truth));

@@ -157,7 +157,8 @@ impl DepthCamera {
         let aabb = scene.tool.local_aabb();
         let (lo, hi) = (aabb.mins, aabb.maxs);
         let camera_from_tool = self.world_from_camera.inverse() * scene.world_from_tool;
-        let (mut umin, mut umax, mut vmin, mut vmax) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+        let (mut umin, mut umax, mut vmin, mut vmax) =
+            (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
         for i in 0..8 {
             let c = Point3::new(
                 if i & 1 == 0 { lo.x } else { hi.x } as f64,
@@ -176,14 +177,25 @@ impl DepthCamera {
             vmax = vmax.max(v);
         }
         let clamp = |x: f64, n: u32| x.clamp(0.0, n as f64) as u32;
-        (clamp(umin.floor(), k.width), clamp(umax.ceil() + 1.0, k.width), clamp(vmin.floor(), k.height), clamp(vmax.ceil() + 1.0, k.height))
+        (
+            clamp(umin.floor(), k.width),
+            clamp(umax.ceil() + 1.0, k.width),
+            clamp(vmin.floor(), k.height),
+            clamp(vmax.ceil() + 1.0, k.height),
+        )
     }
 }
 
 /// The standard viewpoints around an object: `count` azimuths evenly spaced,
 /// alternating elevations of 25° and 45°, at a distance where the object fills
 /// about a third of the image. View `k` is fixed for a given object size.
-pub fn standard_view(k: usize, count: usize, target: Point3<f64>, object_size: f64, intrinsics: Intrinsics) -> Result<Isometry3<f64>, CameraError> {
+pub fn standard_view(
+    k: usize,
+    count: usize,
+    target: Point3<f64>,
+    object_size: f64,
+    intrinsics: Intrinsics,
+) -> Result<Isometry3<f64>, CameraError> {
     let count = count.max(1);
     let azimuth = std::f64::consts::TAU * (k % count) as f64 / count as f64;
     let elevation = if k % 2 == 0 { 25f64 } else { 45f64 }.to_radians();
@@ -198,12 +210,28 @@ mod tests {
     use super::*;
 
     fn box_mesh(lo: Point3<f64>, hi: Point3<f64>) -> TriMesh {
-        let v = |i: usize| Point3::new(if i & 1 == 0 { lo.x } else { hi.x }, if i & 2 == 0 { lo.y } else { hi.y }, if i & 4 == 0 { lo.z } else { hi.z });
+        let v = |i: usize| {
+            Point3::new(
+                if i & 1 == 0 { lo.x } else { hi.x },
+                if i & 2 == 0 { lo.y } else { hi.y },
+                if i & 4 == 0 { lo.z } else { hi.z },
+            )
+        };
         let vertices = (0..8).map(v).collect();
         // Faces wound outward (vertex index bits: x=1, y=2, z=4).
         let triangles = vec![
-            [0, 2, 3], [0, 3, 1], [4, 5, 7], [4, 7, 6], [0, 1, 5], [0, 5, 4],
-            [2, 6, 7], [2, 7, 3], [0, 4, 6], [0, 6, 2], [1, 3, 7], [1, 7, 5],
+            [0, 2, 3],
+            [0, 3, 1],
+            [4, 5, 7],
+            [4, 7, 6],
+            [0, 1, 5],
+            [0, 5, 4],
+            [2, 6, 7],
+            [2, 7, 3],
+            [0, 4, 6],
+            [0, 6, 2],
+            [1, 3, 7],
+            [1, 7, 5],
         ];
         TriMesh::new(vertices, triangles)
     }

@@ -10,7 +10,11 @@ fn handle_points(eye: Point3<f64>) -> (usize, usize) {
     let tools::ToolParams::Mug(p) = &mug.params else { panic!("a mug has mug parameters") };
     let scene = Scene::new(&mug.mesh, Isometry3::identity(), Some(0.0)).unwrap();
     let target = Point3::new(0.0, 0.0, 0.05);
-    let cam = DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: look_at(eye, target, Vector3::z()).unwrap(), noise: DepthNoise::NONE };
+    let cam = DepthCamera {
+        intrinsics: Intrinsics::default(),
+        world_from_camera: look_at(eye, target, Vector3::z()).unwrap(),
+        noise: DepthNoise::NONE,
+    };
     let view = cam.capture(&scene, 0).unwrap();
     // The handle is the only geometry beyond the body's outer radius (plus a margin) on the +x side.
     let body_r = p.radius * 1.15 + 0.002;

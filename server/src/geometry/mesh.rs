@@ -58,7 +58,11 @@ impl TriMesh {
     /// Triangle ranges of the parts (one range covering all when `parts` is empty).
     pub fn part_ranges(&self) -> Vec<Range<usize>> {
         if self.parts.is_empty() {
-            if self.triangles.is_empty() { Vec::new() } else { vec![0..self.triangles.len()] }
+            if self.triangles.is_empty() {
+                Vec::new()
+            } else {
+                vec![0..self.triangles.len()]
+            }
         } else {
             self.parts.clone()
         }

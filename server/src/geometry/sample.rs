@@ -52,11 +52,8 @@ impl<'a> SurfaceSampler<'a> {
         for (p, r) in parts.iter().enumerate() {
             part_of_triangle[r.clone()].iter_mut().for_each(|x| *x = p);
         }
-        let part_solids = if parts.len() > 1 {
-            parts.iter().map(|r| to_parry_part(mesh, r.clone())).collect()
-        } else {
-            Vec::new()
-        };
+        let part_solids =
+            if parts.len() > 1 { parts.iter().map(|r| to_parry_part(mesh, r.clone())).collect() } else { Vec::new() };
         Ok(Self { mesh, cumulative_area, part_of_triangle, part_solids })
     }
 
@@ -124,8 +121,12 @@ fn to_parry_part(mesh: &TriMesh, tris: std::ops::Range<usize>) -> Option<parry3d
         indices.push(out);
     }
     use parry3d::shape::TriMeshFlags;
-    parry3d::shape::TriMesh::with_flags(vertices, indices, TriMeshFlags::ORIENTED | TriMeshFlags::MERGE_DUPLICATE_VERTICES)
-        .ok()
+    parry3d::shape::TriMesh::with_flags(
+        vertices,
+        indices,
+        TriMeshFlags::ORIENTED | TriMeshFlags::MERGE_DUPLICATE_VERTICES,
+    )
+    .ok()
 }
 
 /// A parry copy of the whole mesh (f32), for ray casts and distance queries.
@@ -170,12 +171,28 @@ mod tests {
     fn unit_cube() -> TriMesh {
         let v = |x: f64, y: f64, z: f64| Point3::new(x, y, z);
         let vertices = vec![
-            v(0., 0., 0.), v(1., 0., 0.), v(1., 1., 0.), v(0., 1., 0.),
-            v(0., 0., 1.), v(1., 0., 1.), v(1., 1., 1.), v(0., 1., 1.),
+            v(0., 0., 0.),
+            v(1., 0., 0.),
+            v(1., 1., 0.),
+            v(0., 1., 0.),
+            v(0., 0., 1.),
+            v(1., 0., 1.),
+            v(1., 1., 1.),
+            v(0., 1., 1.),
         ];
         let triangles = vec![
-            [0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4],
-            [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7],
+            [0, 2, 1],
+            [0, 3, 2],
+            [4, 5, 6],
+            [4, 6, 7],
+            [0, 1, 5],
+            [0, 5, 4],
+            [1, 2, 6],
+            [1, 6, 5],
+            [2, 3, 7],
+            [2, 7, 6],
+            [3, 0, 4],
+            [3, 4, 7],
         ];
         TriMesh::new(vertices, triangles)
     }
@@ -215,8 +232,14 @@ mod tests {
         assert_eq!(m.part_ranges().len(), 2);
         let pts = sample_points(&m, 400, 1).unwrap();
         for p in pts {
-            let strictly_inside_first = p.x > 1e-6 && p.x < 1.0 - 1e-6 && p.y > 1e-6 && p.y < 1.0 - 1e-6 && p.z > 1e-6 && p.z < 1.0 - 1e-6;
-            let strictly_inside_second = p.x > 0.5 + 1e-6 && p.x < 1.5 - 1e-6 && p.y > 1e-6 && p.y < 1.0 - 1e-6 && p.z > 1e-6 && p.z < 1.0 - 1e-6;
+            let strictly_inside_first =
+                p.x > 1e-6 && p.x < 1.0 - 1e-6 && p.y > 1e-6 && p.y < 1.0 - 1e-6 && p.z > 1e-6 && p.z < 1.0 - 1e-6;
+            let strictly_inside_second = p.x > 0.5 + 1e-6
+                && p.x < 1.5 - 1e-6
+                && p.y > 1e-6
+                && p.y < 1.0 - 1e-6
+                && p.z > 1e-6
+                && p.z < 1.0 - 1e-6;
             assert!(!strictly_inside_first && !strictly_inside_second, "buried sample {p}");
         }
     }

@@ -114,7 +114,9 @@ impl TransferredTool {
         demo_keypoints_canonical: &[Point3<f64>],
         canonical_mesh: &TriMesh,
     ) -> Result<Self, GraspError> {
-        Self::build(Similarity::identity(), demo_keypoints_canonical, canonical_mesh, |z| space.deform_anchored(z, latent))
+        Self::build(Similarity::identity(), demo_keypoints_canonical, canonical_mesh, |z| {
+            space.deform_anchored(z, latent)
+        })
     }
 
     fn build(

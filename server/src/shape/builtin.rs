@@ -11,13 +11,19 @@ pub fn artefact_path(cache_dir: &Path, category: Category) -> PathBuf {
 }
 
 /// Builds the space of a built-in category from its canonical and training instances.
-pub fn build(category: Category, opts: &BuildOptions, progress: impl Fn(usize, usize) + Sync) -> Result<(ShapeSpace, BuildReport), SpaceError> {
-    let family = tools::family(category).map_err(|e| SpaceError::Artefact { path: category.name().into(), reason: e.to_string() })?;
-    let canonical = family
-        .iter()
-        .find(|i| i.split == Split::Canonical)
-        .ok_or_else(|| SpaceError::Artefact { path: category.name().into(), reason: "family has no canonical instance".into() })?;
-    let keypoints = canonical.keypoints.iter().map(|k| NamedPoint { name: k.name.clone(), position: k.position }).collect();
+pub fn build(
+    category: Category,
+    opts: &BuildOptions,
+    progress: impl Fn(usize, usize) + Sync,
+) -> Result<(ShapeSpace, BuildReport), SpaceError> {
+    let family = tools::family(category)
+        .map_err(|e| SpaceError::Artefact { path: category.name().into(), reason: e.to_string() })?;
+    let canonical = family.iter().find(|i| i.split == Split::Canonical).ok_or_else(|| SpaceError::Artefact {
+        path: category.name().into(),
+        reason: "family has no canonical instance".into(),
+    })?;
+    let keypoints =
+        canonical.keypoints.iter().map(|k| NamedPoint { name: k.name.clone(), position: k.position }).collect();
     let training: Vec<(String, crate::geometry::TriMesh)> =
         family.iter().filter(|i| i.split == Split::Train).map(|i| (i.name.clone(), i.mesh.clone())).collect();
     ShapeSpace::build(category.name(), &canonical.mesh, keypoints, &training, opts, progress)
@@ -25,7 +31,11 @@ pub fn build(category: Category, opts: &BuildOptions, progress: impl Fn(usize, u
 
 /// Loads the cached artefact, or builds and caches it when it is missing,
 /// corrupt or of another format version (the reason is logged).
-pub fn load_or_build(category: Category, cache_dir: &Path, progress: impl Fn(usize, usize) + Sync) -> Result<ShapeSpace, SpaceError> {
+pub fn load_or_build(
+    category: Category,
+    cache_dir: &Path,
+    progress: impl Fn(usize, usize) + Sync,
+) -> Result<ShapeSpace, SpaceError> {
     let path = artefact_path(cache_dir, category);
     match ShapeSpace::load(&path) {
         Ok(s) => return Ok(s),

@@ -188,7 +188,12 @@ pub fn rigid(source: &[Point3<f64>], target: &[Point3<f64>], opts: &RigidOptions
         translation,
         scale: s,
         moved,
-        report: EmReport { iterations, converged, sigma2: sigma2 * norm.scale * norm.scale, elapsed_ms: t0.elapsed().as_secs_f64() * 1e3 },
+        report: EmReport {
+            iterations,
+            converged,
+            sigma2: sigma2 * norm.scale * norm.scale,
+            elapsed_ms: t0.elapsed().as_secs_f64() * 1e3,
+        },
     })
 }
 
@@ -266,7 +271,11 @@ impl NonRigidOptions {
     fn validate(&self) -> Result<(), CpdError> {
         self.em.validate()?;
         if !(self.beta > 1e-4 && self.beta < 1e4) {
-            return Err(CpdError::BadParameter { name: "beta", value: self.beta, why: "relative kernel width must lie in (1e-4, 1e4)" });
+            return Err(CpdError::BadParameter {
+                name: "beta",
+                value: self.beta,
+                why: "relative kernel width must lie in (1e-4, 1e4)",
+            });
         }
         if !(self.lambda > 0.0 && self.lambda.is_finite()) {
             return Err(CpdError::BadParameter { name: "lambda", value: self.lambda, why: "must be positive" });
@@ -311,7 +320,11 @@ pub struct NonRigidResult {
 }
 
 /// Non-rigid CPD of `source` onto `target`.
-pub fn non_rigid(source: &[Point3<f64>], target: &[Point3<f64>], opts: &NonRigidOptions) -> Result<NonRigidResult, CpdError> {
+pub fn non_rigid(
+    source: &[Point3<f64>],
+    target: &[Point3<f64>],
+    opts: &NonRigidOptions,
+) -> Result<NonRigidResult, CpdError> {
     let ys = to_p3(source);
     check_cloud("source", &ys)?;
     opts.validate()?;
@@ -396,7 +409,12 @@ pub fn non_rigid_with_kernel(
         moved,
         field: DeformationField { norm, centres: y0.to_vec(), weights: w, beta: opts.beta },
         kernel_rank: k,
-        report: EmReport { iterations, converged, sigma2: sigma2 * norm.scale * norm.scale, elapsed_ms: t0.elapsed().as_secs_f64() * 1e3 },
+        report: EmReport {
+            iterations,
+            converged,
+            sigma2: sigma2 * norm.scale * norm.scale,
+            elapsed_ms: t0.elapsed().as_secs_f64() * 1e3,
+        },
     })
 }
 
@@ -423,7 +441,8 @@ mod tests {
         let rot = Rotation3::from_axis_angle(&Unit::new_normalize(Vector3::new(0.3, -0.5, 1.0)), 0.6);
         let t = Vector3::new(0.4, -0.2, 0.1);
         let dst: Vec<_> = src.iter().map(|p| Point3::from(1.3 * (rot * p.coords) + t)).collect();
-        let res = rigid(&src, &dst, &RigidOptions { em: EmOptions { w: 0.0, max_iters: 200, tol: 1e-9 }, scale: true }).unwrap();
+        let res = rigid(&src, &dst, &RigidOptions { em: EmOptions { w: 0.0, max_iters: 200, tol: 1e-9 }, scale: true })
+            .unwrap();
         assert!((res.rotation - rot.matrix()).norm() < 1e-4, "{}", res.rotation);
         assert!((res.scale - 1.3).abs() < 1e-4);
         assert!((res.translation - t).norm() < 1e-4);
@@ -436,14 +455,20 @@ mod tests {
         let src = blob(600, 2);
         // A smooth bend: z shifts with x², magnitude 1.5 cm.
         let dst: Vec<_> = src.iter().map(|p| Point3::new(p.x, p.y, p.z + 1.0 * p.x * p.x)).collect();
-        let opts = NonRigidOptions { em: EmOptions { w: 0.0, max_iters: 200, tol: 1e-8 }, beta: 0.8, lambda: 0.5, ..Default::default() };
+        let opts = NonRigidOptions {
+            em: EmOptions { w: 0.0, max_iters: 200, tol: 1e-8 },
+            beta: 0.8,
+            lambda: 0.5,
+            ..Default::default()
+        };
         let res = non_rigid(&src, &dst, &opts).unwrap();
         let errs: Vec<f64> = res.moved.iter().zip(&dst).map(|(a, b)| (a - b).norm()).collect();
         let mean = errs.iter().sum::<f64>() / errs.len() as f64;
         assert!(mean < 1.5e-3, "mean error {mean}");
         // The field moves points that were never samples, consistently.
         let moved_again = res.field.apply(&to_p3(&src));
-        let diff = moved_again.iter().zip(&res.moved).map(|(a, b)| (Vector3::from(*a) - b.coords).norm()).fold(0.0, f64::max);
+        let diff =
+            moved_again.iter().zip(&res.moved).map(|(a, b)| (Vector3::from(*a) - b.coords).norm()).fold(0.0, f64::max);
         assert!(diff < 2e-3, "field vs moved: {diff}");
     }
 

@@ -64,7 +64,22 @@ impl EStep {
         let n = x.len().max(1) as f64;
         let c = x.iter().fold([0.0; 3], |a, p| [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]);
         let x_radius = x.iter().map(|p| dist2(p, &c)).fold(0.0, f64::max).sqrt();
-        Self { x: x.to_vec(), grid: RadiusGrid::default(), grid_radius: 0.0, x_radius, cutoff_sigmas: CUTOFF_SIGMAS, truncate_below: 0.5, single_precision: false, f32buf: F32Buffers::default(), ys: Default::default(), row: Vec::new(), acc: Default::default(), pi: Vec::new(), den: Vec::new(), pairs: Vec::new() }
+        Self {
+            x: x.to_vec(),
+            grid: RadiusGrid::default(),
+            grid_radius: 0.0,
+            x_radius,
+            cutoff_sigmas: CUTOFF_SIGMAS,
+            truncate_below: 0.5,
+            single_precision: false,
+            f32buf: F32Buffers::default(),
+            ys: Default::default(),
+            row: Vec::new(),
+            acc: Default::default(),
+            pi: Vec::new(),
+            den: Vec::new(),
+            pairs: Vec::new(),
+        }
     }
 
     pub fn data(&self) -> &[P3] {
@@ -153,7 +168,15 @@ impl EStep {
         dense_rows(x, ys, pi, row, acc, m, k, c, out);
     }
 
-    fn run_truncated(&mut self, y: &[P3], weights: Option<&[f64]>, sigma2: f64, c: f64, cutoff2: f64, out: &mut Posteriors) {
+    fn run_truncated(
+        &mut self,
+        y: &[P3],
+        weights: Option<&[f64]>,
+        sigma2: f64,
+        c: f64,
+        cutoff2: f64,
+        out: &mut Posteriors,
+    ) {
         let radius = cutoff2.sqrt();
         // Rebuild when σ has shrunk enough that the cells hold far too much, or grown past them.
         if radius > self.grid_radius || radius < 0.5 * self.grid_radius {
@@ -196,7 +219,17 @@ impl EStep {
 /// columns, not [f64; 3] rows) and a four-way partial sum for the row total.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn dense_rows(x: &[P3], ys: &[Vec<f64>; 3], pi: &[f64], row: &mut [f64], acc: &mut [Vec<f64>; 4], m: usize, k: f64, c: f64, out: &mut Posteriors) {
+fn dense_rows(
+    x: &[P3],
+    ys: &[Vec<f64>; 3],
+    pi: &[f64],
+    row: &mut [f64],
+    acc: &mut [Vec<f64>; 4],
+    m: usize,
+    k: f64,
+    c: f64,
+    out: &mut Posteriors,
+) {
     let (yx, yy, yz, pi) = (&ys[0][..m], &ys[1][..m], &ys[2][..m], &pi[..m]);
     for a in acc.iter_mut() {
         a.clear();
@@ -225,7 +258,9 @@ fn dense_rows(x: &[P3], ys: &[Vec<f64>; 3], pi: &[f64], row: &mut [f64], acc: &m
         let inv = 1.0 / den;
         out.pt1[j] = sum * inv;
         let (w0, w1, w2) = (xn[0] * inv, xn[1] * inv, xn[2] * inv);
-        for ((((r, a), b), c), d) in row.iter().zip(p1.iter_mut()).zip(px0.iter_mut()).zip(px1.iter_mut()).zip(px2.iter_mut()) {
+        for ((((r, a), b), c), d) in
+            row.iter().zip(p1.iter_mut()).zip(px0.iter_mut()).zip(px1.iter_mut()).zip(px2.iter_mut())
+        {
             *a += r * inv;
             *b += r * w0;
             *c += r * w1;
@@ -244,7 +279,17 @@ fn dense_rows(x: &[P3], ys: &[Vec<f64>; 3], pi: &[f64], row: &mut [f64], acc: &m
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 #[allow(clippy::too_many_arguments)]
-unsafe fn dense_rows_avx2(x: &[P3], ys: &[Vec<f64>; 3], pi: &[f64], row: &mut [f64], acc: &mut [Vec<f64>; 4], m: usize, k: f64, c: f64, out: &mut Posteriors) {
+unsafe fn dense_rows_avx2(
+    x: &[P3],
+    ys: &[Vec<f64>; 3],
+    pi: &[f64],
+    row: &mut [f64],
+    acc: &mut [Vec<f64>; 4],
+    m: usize,
+    k: f64,
+    c: f64,
+    out: &mut Posteriors,
+) {
     dense_rows(x, ys, pi, row, acc, m, k, c, out)
 }
 
@@ -290,7 +335,9 @@ fn dense_rows_f32(b: &mut F32Buffers, m: usize, k: f32, c: f64, out: &mut Poster
         out.pt1[j] = sum * inv;
         let inv32 = inv as f32;
         let (w0, w1, w2) = (xn[0] * inv32, xn[1] * inv32, xn[2] * inv32);
-        for ((((r, a), bb), cc), d) in row.iter().zip(p1.iter_mut()).zip(px0.iter_mut()).zip(px1.iter_mut()).zip(px2.iter_mut()) {
+        for ((((r, a), bb), cc), d) in
+            row.iter().zip(p1.iter_mut()).zip(px0.iter_mut()).zip(px1.iter_mut()).zip(px2.iter_mut())
+        {
             *a += r * inv32;
             *bb += r * w0;
             *cc += r * w1;
@@ -340,7 +387,6 @@ pub fn dist2(a: &P3, b: &P3) -> f64 {
     dx * dx + dy * dy + dz * dz
 }
 
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -354,7 +400,12 @@ mod tests {
     /// The textbook E-step with the full matrix, as the reference.
     fn reference(x: &[P3], y: &[P3], s2: f64, w: f64) -> Posteriors {
         let c = outlier_constant(s2, w, y.len(), x.len());
-        let mut out = Posteriors { p1: vec![0.0; y.len()], pt1: vec![0.0; x.len()], px: vec![[0.0; 3]; y.len()], ..Default::default() };
+        let mut out = Posteriors {
+            p1: vec![0.0; y.len()],
+            pt1: vec![0.0; x.len()],
+            px: vec![[0.0; 3]; y.len()],
+            ..Default::default()
+        };
         for (j, xn) in x.iter().enumerate() {
             let g: Vec<f64> = y.iter().map(|ym| (-dist2(xn, ym) / (2.0 * s2)).exp()).collect();
             let den: f64 = g.iter().sum::<f64>() + c;

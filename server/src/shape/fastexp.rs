@@ -17,7 +17,7 @@ pub fn exp_neg(x: f64) -> f64 {
     let r = t + ROUND_MAGIC;
     let n = r - ROUND_MAGIC;
     let f = (t - n) * std::f64::consts::LN_2; // |f| ≤ ln2/2
-    // Taylor series of e^f to degree 11: truncation error < 2e-16 on |f| ≤ 0.347.
+                                              // Taylor series of e^f to degree 11: truncation error < 2e-16 on |f| ≤ 0.347.
     let p = 1.0
         + f * (1.0
             + f * (1.0 / 2.0
@@ -43,7 +43,10 @@ pub fn exp_neg_f32(x: f32) -> f32 {
     let r = t + MAGIC;
     let n = r - MAGIC;
     let f = (t - n) * std::f32::consts::LN_2;
-    let p = 1.0 + f * (1.0 + f * (0.5 + f * (1.0 / 6.0 + f * (1.0 / 24.0 + f * (1.0 / 120.0 + f * (1.0 / 720.0 + f * (1.0 / 5040.0)))))));
+    let p = 1.0
+        + f * (1.0
+            + f * (0.5
+                + f * (1.0 / 6.0 + f * (1.0 / 24.0 + f * (1.0 / 120.0 + f * (1.0 / 720.0 + f * (1.0 / 5040.0)))))));
     let ni = (r.to_bits() as i32).wrapping_sub(MAGIC.to_bits() as i32);
     p * f32::from_bits(((ni + 127) as u32) << 23)
 }

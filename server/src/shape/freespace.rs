@@ -55,11 +55,20 @@ impl FreeSpace {
         let cell = 3.0 * (area / n).sqrt();
         let pad = 2.0 * cell;
         let origin_uv = [lo[0] - pad, lo[1] - pad];
-        let dims = [((hi[0] - lo[0] + 2.0 * pad) / cell) as usize + 1, ((hi[1] - lo[1] + 2.0 * pad) / cell) as usize + 1];
+        let dims =
+            [((hi[0] - lo[0] + 2.0 * pad) / cell) as usize + 1, ((hi[1] - lo[1] + 2.0 * pad) / cell) as usize + 1];
         if dims[0] * dims[1] > 1 << 20 {
             return None;
         }
-        let mut fs = FreeSpace { viewpoint, axes, origin_uv, inv_cell: 1.0 / cell, dims, min_range: vec![f64::INFINITY; dims[0] * dims[1]], margin };
+        let mut fs = FreeSpace {
+            viewpoint,
+            axes,
+            origin_uv,
+            inv_cell: 1.0 / cell,
+            dims,
+            min_range: vec![f64::INFINITY; dims[0] * dims[1]],
+            margin,
+        };
         for (q, r) in uv.into_iter().flatten() {
             if let Some(c) = fs.cell(q) {
                 fs.min_range[c] = fs.min_range[c].min(r);
@@ -97,7 +106,11 @@ impl FreeSpace {
                 _ => {}
             }
         }
-        if facing == 0 { 0.0 } else { violated as f64 / facing as f64 }
+        if facing == 0 {
+            0.0
+        } else {
+            violated as f64 / facing as f64
+        }
     }
 }
 

@@ -122,11 +122,14 @@ mod tests {
         for radius in [0.03, 0.1, 0.4] {
             g.build(&x, radius);
             for _ in 0..50 {
-                let q: P3 = [r.random::<f64>() * 1.4 - 0.2, r.random::<f64>() * 0.7 - 0.1, r.random::<f64>() * 0.3 - 0.1];
+                let q: P3 =
+                    [r.random::<f64>() * 1.4 - 0.2, r.random::<f64>() * 0.7 - 0.1, r.random::<f64>() * 0.3 - 0.1];
                 let mut got = Vec::new();
                 g.for_each_within(&x, &q, radius * radius, |i, _| got.push(i));
                 got.sort_unstable();
-                let want: Vec<u32> = (0..x.len() as u32).filter(|&i| super::super::estep::dist2(&x[i as usize], &q) <= radius * radius).collect();
+                let want: Vec<u32> = (0..x.len() as u32)
+                    .filter(|&i| super::super::estep::dist2(&x[i as usize], &q) <= radius * radius)
+                    .collect();
                 assert_eq!(got, want);
             }
         }

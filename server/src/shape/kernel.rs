@@ -43,11 +43,7 @@ impl LowRankKernel {
         let m = points.len();
         let g = gaussian(points, points, beta);
         let max_rank = max_rank.clamp(1, m.max(1));
-        let (u, s) = if m <= 2 * max_rank + 64 {
-            exact_eigen(&g)
-        } else {
-            randomized_eigen(&g, max_rank, seed)
-        };
+        let (u, s) = if m <= 2 * max_rank + 64 { exact_eigen(&g) } else { randomized_eigen(&g, max_rank, seed) };
         // Eigenvalues descending.
         let lmax = s.first().copied().unwrap_or(0.0).max(f64::MIN_POSITIVE);
         let mut k = s.iter().take(max_rank).take_while(|&&l| l > rel_tol * lmax).count().max(1);

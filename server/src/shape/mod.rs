@@ -11,7 +11,7 @@ pub mod kernel;
 pub mod register;
 pub mod space;
 
-pub use register::{Registrar, RegisterOptions, Registration};
+pub use register::{RegisterOptions, Registrar, Registration};
 pub use space::{BuildOptions, ShapeSpace};
 
 #[cfg(test)]

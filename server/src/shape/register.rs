@@ -243,7 +243,18 @@ impl Registrar {
             .iter()
             .map(|&pose| {
                 let view = View { normals: &coarse_normals, viewpoint };
-                let fit = em(&coarse_model, view, &coarse_x, pose, vec![0.0; 0], None, None, opts, opts.coarse_iters, &self.space.norm);
+                let fit = em(
+                    &coarse_model,
+                    view,
+                    &coarse_x,
+                    pose,
+                    vec![0.0; 0],
+                    None,
+                    None,
+                    opts,
+                    opts.coarse_iters,
+                    &self.space.norm,
+                );
                 (fit.nll, fit.pose, fit.sigma2)
             })
             .collect();
@@ -254,7 +265,8 @@ impl Registrar {
         stage.coarse = ms(t_stage);
         let t_stage = Instant::now();
         let prior = opts.fit_latent.then_some(self.space.variances.as_slice());
-        let free_space = viewpoint.and_then(|vp| FreeSpace::new(&subsample(&all, 4000, &mut rng), vp, FREE_SPACE_MARGIN_M));
+        let free_space =
+            viewpoint.and_then(|vp| FreeSpace::new(&subsample(&all, 4000, &mut rng), vp, FREE_SPACE_MARGIN_M));
         let mut best: Option<(f64, Fit)> = None;
         let mut raced: Vec<(f64, Matrix3<f64>)> = Vec::new();
         let mut iterations = 0;
@@ -266,7 +278,18 @@ impl Registrar {
             // from the data's spread would redo the coarse stage at full resolution.
             // Poses race on the mean shape: a free latent lets a wrong pose deform
             // into a fit as good as the right one's (measured: most gross failures).
-            let fit = em(&models.race, View { normals: &models.race_normals, viewpoint }, &race_x, *pose, vec![0.0; q], None, Some(2.0 * sigma2), opts, opts.race_iters, &self.space.norm);
+            let fit = em(
+                &models.race,
+                View { normals: &models.race_normals, viewpoint },
+                &race_x,
+                *pose,
+                vec![0.0; q],
+                None,
+                Some(2.0 * sigma2),
+                opts,
+                opts.race_iters,
+                &self.space.norm,
+            );
             iterations += fit.iterations;
             // Likelihood per observed point, penalised by the share of the model the view contradicts.
             let violation = free_space.as_ref().map_or(0.0, |fs| {
@@ -286,7 +309,18 @@ impl Registrar {
         });
         stage.race = ms(t_stage);
         let t_stage = Instant::now();
-        let fit = em(&models.fine, View { normals: &models.fine_normals, viewpoint }, &fine_x, lead.pose, lead.latent.clone(), prior, Some(lead.sigma2), opts, opts.fine_iters, &self.space.norm);
+        let fit = em(
+            &models.fine,
+            View { normals: &models.fine_normals, viewpoint },
+            &fine_x,
+            lead.pose,
+            lead.latent.clone(),
+            prior,
+            Some(lead.sigma2),
+            opts,
+            opts.fine_iters,
+            &self.space.norm,
+        );
         iterations += fit.iterations;
         stage.refine = ms(t_stage);
         let t_stage = Instant::now();
@@ -329,13 +363,21 @@ impl Registrar {
     /// it (a demonstration's hand keypoints), moved onto the registered tool.
     pub fn transfer(&self, reg: &Registration, canonical_points: &[P3]) -> Vec<P3> {
         let pose = self.pose_of(reg);
-        let deformed = if reg.latent.is_empty() { canonical_points.to_vec() } else { self.space.deform_anchored(canonical_points, &reg.latent) };
+        let deformed = if reg.latent.is_empty() {
+            canonical_points.to_vec()
+        } else {
+            self.space.deform_anchored(canonical_points, &reg.latent)
+        };
         deformed.iter().map(|z| pose.apply(&self.space.norm.forward(z))).collect()
     }
 
     /// A registration without latent (the `canonical` baseline) uses the undeformed models.
     fn models_of(&self, reg: &Registration) -> &Models {
-        if reg.latent.is_empty() { &self.rigid } else { &self.deformable }
+        if reg.latent.is_empty() {
+            &self.rigid
+        } else {
+            &self.deformable
+        }
     }
 
     fn pose_of(&self, reg: &Registration) -> Pose {
@@ -365,9 +407,13 @@ impl Registrar {
             Some(up) => {
                 // Upright at `yaws` yaws.
                 let up = Vector3::from(up).try_normalize(1e-9).unwrap_or_else(Vector3::z);
-                let align = Rotation3::rotation_between(&Vector3::z(), &up).unwrap_or_else(|| Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI));
+                let align = Rotation3::rotation_between(&Vector3::z(), &up)
+                    .unwrap_or_else(|| Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI));
                 for k in 0..opts.yaws {
-                    let yaw = Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(up), k as f64 * std::f64::consts::TAU / opts.yaws as f64);
+                    let yaw = Rotation3::from_axis_angle(
+                        &nalgebra::Unit::new_normalize(up),
+                        k as f64 * std::f64::consts::TAU / opts.yaws as f64,
+                    );
                     rots.push(*(yaw * align).matrix());
                 }
             }
@@ -403,7 +449,13 @@ impl Registrar {
         }
         let inlier_fraction = n_in as f64 / x.len().max(1) as f64;
         let residual_mm = if n_in > 0 { (sum2 / n_in as f64).sqrt() * 1e3 } else { f64::INFINITY };
-        FitQuality { inlier_fraction, residual_mm, inlier_mm: inlier_m * 1e3, confident: inlier_fraction >= CONFIDENT_INLIER_FRACTION, ambiguous_pose: false }
+        FitQuality {
+            inlier_fraction,
+            residual_mm,
+            inlier_mm: inlier_m * 1e3,
+            confident: inlier_fraction >= CONFIDENT_INLIER_FRACTION,
+            ambiguous_pose: false,
+        }
     }
 }
 
@@ -460,7 +512,11 @@ impl View<'_> {
         out.clear();
         out.extend(self.normals.iter().zip(y_world).map(|(n, y)| {
             let facing = (pose.r * Vector3::from(*n)).dot(&(vp - Vector3::from(*y)));
-            if facing > 0.0 { 1.0 } else { HIDDEN_WEIGHT }
+            if facing > 0.0 {
+                1.0
+            } else {
+                HIDDEN_WEIGHT
+            }
         }));
         let mean = out.iter().sum::<f64>() / out.len().max(1) as f64;
         out.iter_mut().for_each(|w| *w /= mean);
@@ -573,7 +629,8 @@ fn em(
         }
         for i in 0..y_world.len() {
             let (y, px) = (&y_world[i], &post.px[i]);
-            num += post.p1[i] * (y[0] * y[0] + y[1] * y[1] + y[2] * y[2]) - 2.0 * (px[0] * y[0] + px[1] * y[1] + px[2] * y[2]);
+            num += post.p1[i] * (y[0] * y[0] + y[1] * y[1] + y[2] * y[2])
+                - 2.0 * (px[0] * y[0] + px[1] * y[1] + px[2] * y[2]);
         }
         sigma2 = (num / (3.0 * post.np)).abs().max(1e-10);
         if (prev - nll).abs() <= opts.tol * nll.abs().max(1e-12) {
@@ -652,11 +709,19 @@ fn trimmed_core(x: &[P3]) -> Vec<P3> {
         let mid = v.len() / 2;
         *v.select_nth_unstable_by(mid, f64::total_cmp).1
     };
-    let m = [median(x.iter().map(|p| p[0]).collect()), median(x.iter().map(|p| p[1]).collect()), median(x.iter().map(|p| p[2]).collect())];
+    let m = [
+        median(x.iter().map(|p| p[0]).collect()),
+        median(x.iter().map(|p| p[1]).collect()),
+        median(x.iter().map(|p| p[2]).collect()),
+    ];
     let d: Vec<f64> = x.iter().map(|p| dist2(p, &m).sqrt()).collect();
     let limit = 2.5 * median(d.clone());
     let core: Vec<P3> = x.iter().zip(&d).filter(|(_, &di)| di <= limit).map(|(p, _)| *p).collect();
-    if core.len() >= 10 { core } else { x.to_vec() }
+    if core.len() >= 10 {
+        core
+    } else {
+        x.to_vec()
+    }
 }
 
 /// Principal axes (columns, descending variance, right-handed) and centroid.
@@ -683,7 +748,8 @@ fn principal_axes(x: &[P3]) -> (Matrix3<f64>, Vector3<f64>) {
 /// The 24 proper rotations mapping the coordinate axes onto themselves.
 fn cube_rotations() -> Vec<Matrix3<f64>> {
     let mut out = Vec::with_capacity(24);
-    let axes: [Vector3<f64>; 6] = [Vector3::x(), Vector3::y(), Vector3::z(), -Vector3::x(), -Vector3::y(), -Vector3::z()];
+    let axes: [Vector3<f64>; 6] =
+        [Vector3::x(), Vector3::y(), Vector3::z(), -Vector3::x(), -Vector3::y(), -Vector3::z()];
     for a in &axes {
         for b in &axes {
             if a.dot(b).abs() > 0.5 {

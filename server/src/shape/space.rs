@@ -7,12 +7,12 @@
 //! All stored geometry is in the canonical frame of the category; the kernel
 //! acts in coordinates normalised by the canonical's centroid and RMS radius.
 
-use rayon::prelude::*;
 use super::cpd::{self, to_p3, EmOptions, NonRigidOptions, Normalization, RigidOptions};
 use super::estep::P3;
 use super::kernel::{gaussian, LowRankKernel};
 use crate::geometry::{sample_points_even, TriMesh};
 use faer::prelude::*;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::time::Instant;
@@ -85,7 +85,13 @@ impl Default for BuildOptions {
             explained: 0.995,
             max_modes: 8,
             prealign: false,
-            cpd: NonRigidOptions { beta: 1.0, lambda: 3.0, max_rank: 200, em: EmOptions { w: 0.0, max_iters: 100, tol: 1e-5 }, ..Default::default() },
+            cpd: NonRigidOptions {
+                beta: 1.0,
+                lambda: 3.0,
+                max_rank: 200,
+                em: EmOptions { w: 0.0, max_iters: 100, tol: 1e-5 },
+                ..Default::default()
+            },
             seed: 1,
         }
     }
@@ -141,7 +147,9 @@ impl ShapeSpace {
         // random samples' density noise makes the canonical slide along the
         // surface (measured: 10 mm median keypoint drift, 3.3 mm when even).
         let sample = |m: &TriMesh, n, seed, what: &str| {
-            sample_points_even(m, n, seed).map(|p| to_p3(&p)).map_err(|source| SpaceError::Sample { what: what.to_string(), source })
+            sample_points_even(m, n, seed)
+                .map(|p| to_p3(&p))
+                .map_err(|source| SpaceError::Sample { what: what.to_string(), source })
         };
         let c = sample(canonical, opts.centres, opts.seed, "canonical")?;
         let surface_samples = crate::geometry::SurfaceSampler::new(canonical)
@@ -162,9 +170,13 @@ impl ShapeSpace {
             .map(|(i, (name, mesh))| {
                 let x = cpd::to_points(&sample(mesh, opts.instance_points, opts.seed + 10 + i as u64, name)?);
                 let x = if opts.prealign {
-                    cpd::rigid(&x, &c_pts, &RigidOptions { em: EmOptions { w: 0.0, max_iters: 60, tol: 1e-6 }, scale: false })
-                        .map_err(|source| SpaceError::Cpd { instance: name.clone(), source })?
-                        .moved
+                    cpd::rigid(
+                        &x,
+                        &c_pts,
+                        &RigidOptions { em: EmOptions { w: 0.0, max_iters: 60, tol: 1e-6 }, scale: false },
+                    )
+                    .map_err(|source| SpaceError::Cpd { instance: name.clone(), source })?
+                    .moved
                 } else {
                     x
                 };
@@ -173,7 +185,11 @@ impl ShapeSpace {
                 let w = &res.field.weights;
                 let gw = kernel.apply(w.as_ref());
                 progress(done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1, training.len());
-                Ok(((0..m * 3).map(|k| w[(k / 3, k % 3)]).collect(), (0..m * 3).map(|k| gw[(k / 3, k % 3)]).collect(), res.report.sigma2.sqrt() * 1e3))
+                Ok((
+                    (0..m * 3).map(|k| w[(k / 3, k % 3)]).collect(),
+                    (0..m * 3).map(|k| gw[(k / 3, k % 3)]).collect(),
+                    res.report.sigma2.sqrt() * 1e3,
+                ))
             })
             .collect();
         let mut w_rows = Vec::new();
@@ -186,7 +202,8 @@ impl ShapeSpace {
             residual_sum += r;
         }
         let pca = pca(&w_rows, &v_rows, opts.explained, opts.max_modes)?;
-        let (mean, modes, variances, explained, train_latents) = (pca.mean_w, pca.modes_w, pca.variances, pca.explained, pca.latents);
+        let (mean, modes, variances, explained, train_latents) =
+            (pca.mean_w, pca.modes_w, pca.variances, pca.explained, pca.latents);
         let space = ShapeSpace {
             category: category.to_string(),
             norm,
@@ -233,7 +250,8 @@ impl ShapeSpace {
         let m = self.centres.len();
         let mean = Mat::from_fn(m, 3, |i, d| self.mean[i * 3 + d]);
         let gm = &g * &mean;
-        let base: Vec<P3> = zn.iter().enumerate().map(|(i, p)| [p[0] + gm[(i, 0)], p[1] + gm[(i, 1)], p[2] + gm[(i, 2)]]).collect();
+        let base: Vec<P3> =
+            zn.iter().enumerate().map(|(i, p)| [p[0] + gm[(i, 0)], p[1] + gm[(i, 1)], p[2] + gm[(i, 2)]]).collect();
         let basis = self
             .modes
             .iter()
@@ -328,7 +346,8 @@ impl ShapeSpace {
     /// Loads an artefact, refusing (never half-loading) a corrupt or
     /// version-mismatched one.
     pub fn load(path: &Path) -> Result<Self, SpaceError> {
-        let bytes = std::fs::read(path).map_err(|e| SpaceError::Artefact { path: path.display().to_string(), reason: e.to_string() })?;
+        let bytes = std::fs::read(path)
+            .map_err(|e| SpaceError::Artefact { path: path.display().to_string(), reason: e.to_string() })?;
         Self::from_bytes(&bytes).map_err(|reason| SpaceError::Artefact { path: path.display().to_string(), reason })
     }
 
@@ -391,7 +410,11 @@ fn local_similarity(src: &[P3], dst: &[P3], p: &P3) -> P3 {
     let sign = (u * vt).determinant().signum();
     let d = Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, if sign == 0.0 { 1.0 } else { sign }));
     let r = u * d * vt;
-    let scale = if var > 1e-18 { (svd.singular_values.component_mul(&Vector3::new(1.0, 1.0, if sign < 0.0 { -1.0 } else { 1.0 }))).sum() / var } else { 1.0 };
+    let scale = if var > 1e-18 {
+        (svd.singular_values.component_mul(&Vector3::new(1.0, 1.0, if sign < 0.0 { -1.0 } else { 1.0 }))).sum() / var
+    } else {
+        1.0
+    };
     let q = md + scale.clamp(0.5, 2.0) * (r * (Vector3::from(*p) - ms));
     [q.x, q.y, q.z]
 }
@@ -435,7 +458,10 @@ impl LinearModel {
     }
     /// The sub-model of the given point indices.
     pub fn select(&self, idx: &[usize]) -> LinearModel {
-        LinearModel { base: idx.iter().map(|&i| self.base[i]).collect(), basis: self.basis.iter().map(|b| idx.iter().map(|&i| b[i]).collect()).collect() }
+        LinearModel {
+            base: idx.iter().map(|&i| self.base[i]).collect(),
+            basis: self.basis.iter().map(|b| idx.iter().map(|&i| b[i]).collect()).collect(),
+        }
     }
 }
 

@@ -6,7 +6,7 @@ use super::builtin;
 use super::cpd::{self, EmOptions, RigidOptions};
 use super::register::RegisterError;
 use super::space::{BuildOptions, ShapeSpace};
-use super::{Registrar, RegisterOptions};
+use super::{RegisterOptions, Registrar};
 use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
 use crate::geometry::sample_points;
 use crate::tools::{self, Category, Split};
@@ -15,7 +15,8 @@ use std::sync::OnceLock;
 
 fn mug_space() -> &'static ShapeSpace {
     static SPACE: OnceLock<ShapeSpace> = OnceLock::new();
-    SPACE.get_or_init(|| builtin::build(Category::Mug, &BuildOptions::default(), |_, _| {}).expect("mug space builds").0)
+    SPACE
+        .get_or_init(|| builtin::build(Category::Mug, &BuildOptions::default(), |_, _| {}).expect("mug space builds").0)
 }
 
 fn mug_registrar() -> &'static Registrar {
@@ -25,11 +26,15 @@ fn mug_registrar() -> &'static Registrar {
 
 /// One noisy view of `mesh` placed at `yaw` on a table.
 fn view_of(mesh: &crate::geometry::TriMesh, yaw: f64, view: usize) -> (Vec<Point3<f64>>, Isometry3<f64>) {
-    let pose = Isometry3::from_parts(Translation3::new(0.05, -0.03, 0.0), UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw));
+    let pose = Isometry3::from_parts(
+        Translation3::new(0.05, -0.03, 0.0),
+        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
+    );
     let scene = Scene::new(mesh, pose, Some(0.0)).unwrap();
     let centre = pose * Point3::new(0.0, 0.0, 0.05);
     let cam_pose = standard_view(view, 8, centre, mesh.diagonal(), Intrinsics::default()).unwrap();
-    let cam = DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: cam_pose, noise: DepthNoise::default() };
+    let cam =
+        DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: cam_pose, noise: DepthNoise::default() };
     (cam.capture(&scene, 3).unwrap().points_world, pose)
 }
 
@@ -102,7 +107,8 @@ fn another_category_is_a_poor_fit_not_a_confident_one() {
     let r = reg.register(&cloud, &RegisterOptions::default()).unwrap();
     assert!(!r.fit.confident, "a hammer fitted as a mug: {:?}", r.fit);
     // A flat patch of table.
-    let table: Vec<Point3<f64>> = (0..2000).map(|i| Point3::new((i % 50) as f64 * 0.004, (i / 50) as f64 * 0.004, 0.0)).collect();
+    let table: Vec<Point3<f64>> =
+        (0..2000).map(|i| Point3::new((i % 50) as f64 * 0.004, (i / 50) as f64 * 0.004, 0.0)).collect();
     let r = reg.register(&table, &RegisterOptions::default()).unwrap();
     assert!(!r.fit.confident, "a table fitted as a mug: {:?}", r.fit);
 }
@@ -130,7 +136,9 @@ fn cpd_handles_200k_points_in_linear_memory() {
     let source = sample_points(&mug.mesh, 1000, 1).unwrap();
     let target = sample_points(&mug.mesh, 200_000, 2).unwrap();
     // The dense M×N posterior alone would be 1.6 GB; ours holds O(M + N).
-    let r = cpd::rigid(&source, &target, &RigidOptions { em: EmOptions { w: 0.1, max_iters: 60, tol: 1e-6 }, scale: true }).unwrap();
+    let r =
+        cpd::rigid(&source, &target, &RigidOptions { em: EmOptions { w: 0.1, max_iters: 60, tol: 1e-6 }, scale: true })
+            .unwrap();
     assert!((r.scale - 1.0).abs() < 0.02, "scale {}", r.scale);
     assert!((r.rotation - nalgebra::Matrix3::identity()).norm() < 0.02, "rotation {}", r.rotation);
     assert!(r.translation.norm() < 2e-3, "translation {}", r.translation);
