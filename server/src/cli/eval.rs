@@ -35,6 +35,13 @@ pub enum EvalCommand {
         unknown_viewpoint: bool,
         #[arg(long, default_value_t = 7)]
         seed: u64,
+        /// Registration options as a JSON object laid over the defaults
+        /// (e.g. '{"race_points": 300}'; field names as in `RegisterOptions`).
+        #[arg(long)]
+        register_options: Option<String>,
+        /// Evaluate one split only (test or train).
+        #[arg(long)]
+        split: Option<String>,
         #[arg(long)]
         json: bool,
     },
@@ -97,8 +104,20 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             full_surface,
             unknown_viewpoint,
             seed,
+            register_options,
+            split,
             json,
         } => {
+            let register = match register_options {
+                Some(j) => overlay_register_options(&j)?,
+                None => graspd::shape::RegisterOptions::default(),
+            };
+            let splits: Vec<Split> = match split.as_deref() {
+                None => vec![Split::Test, Split::Train],
+                Some("test") => vec![Split::Test],
+                Some("train") => vec![Split::Train],
+                Some(other) => return Err(format!("unknown split {other:?} (test or train)").into()),
+            };
             let category: Category = category.parse()?;
             let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
             let registrar = Registrar::new(space);
@@ -112,11 +131,12 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                 full_surface,
                 known_viewpoint: !unknown_viewpoint,
                 seed,
+                register,
                 ..Default::default()
             };
 
             let mut reports = Vec::new();
-            for split in [Split::Test, Split::Train] {
+            for &split in &splits {
                 let insts: Vec<_> = family.iter().filter(|i| i.split == split).collect();
                 let bar = progress_bar((insts.len() * views) as u64, split.name());
                 reports.push(evaluate(&registrar, &insts, split, &opts, || bar.inc(1)));
@@ -126,8 +146,8 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                 "category": category.name(),
                 "views": views,
                 "noise_mm": noise_mm, "outliers": outliers, "scale_jitter": scale_jitter, "on_side": on_side, "full_surface": full_surface, "known_viewpoint": !unknown_viewpoint,
-                "test": reports[0],
-                "train": reports[1],
+                "test": splits.iter().position(|s| *s == Split::Test).map(|i| &reports[i]),
+                "train": splits.iter().position(|s| *s == Split::Train).map(|i| &reports[i]),
             });
             if json {
                 print_json(&out)?;
@@ -145,4 +165,21 @@ pub fn run(cmd: EvalCommand) -> CliResult {
         }
     }
     Ok(())
+}
+
+/// `RegisterOptions::default()` with the fields of the JSON object `json` replaced.
+fn overlay_register_options(json: &str) -> Result<graspd::shape::RegisterOptions, Box<dyn std::error::Error>> {
+    let overlay: serde_json::Value =
+        serde_json::from_str(json).map_err(|e| format!("--register-options is not JSON: {e}"))?;
+    let serde_json::Value::Object(fields) = overlay else {
+        return Err("--register-options must be a JSON object".into());
+    };
+    let mut base = serde_json::to_value(graspd::shape::RegisterOptions::default())?;
+    for (k, v) in fields {
+        match base.get_mut(&k) {
+            Some(slot) => *slot = v,
+            None => return Err(format!("--register-options: unknown field {k:?}").into()),
+        }
+    }
+    Ok(serde_json::from_value(base).map_err(|e| format!("--register-options: {e}"))?)
 }

@@ -2,7 +2,7 @@
 //! (cloud → registration → grasp → pre-grasp) and `graspd eval grasp`
 //! (the paper's Table I on the training instances).
 
-use super::register::parse_up;
+use super::register::{parse_up, parse_vec3};
 use super::space::spaces_dir;
 use super::{print_json, progress_bar, CliResult};
 use clap::Args;
@@ -46,6 +46,10 @@ pub struct GraspArgs {
     /// World up in the cloud's frame, "x,y,z"; "none" when unknown (then no table).
     #[arg(long, default_value = "0,0,1")]
     up: String,
+    /// The camera's position in the cloud's frame, "x,y,z" ("0,0,0" for a cloud in
+    /// the camera frame): model points facing away from it are not expected in the view.
+    #[arg(long, allow_hyphen_values = true)]
+    viewpoint: Option<String>,
     /// Table top height in the cloud's frame (z up). Default: the lowest point of the
     /// cloud or of the registered shape, whichever is lower.
     #[arg(long, allow_hyphen_values = true)]
@@ -289,13 +293,14 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
     let canonical = canonical_instance(category)?;
     let cloud = graspd::io::read_cloud(&a.cloud)?;
     let up = parse_up(&a.up)?;
+    let viewpoint = a.viewpoint.as_deref().map(|v| parse_vec3("--viewpoint", v)).transpose()?;
 
     let t_load = Instant::now();
     let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
     let registrar = Registrar::new(space);
     let load_ms = 1e3 * t_load.elapsed().as_secs_f64();
 
-    let reg = registrar.register(&cloud, &RegisterOptions { up, seed: a.seed, ..Default::default() })?;
+    let reg = registrar.register(&cloud, &RegisterOptions { up, viewpoint, seed: a.seed, ..Default::default() })?;
     let tool = TransferredTool::from_registration(&registrar, &reg, &demo_keypoints, &canonical.mesh)?;
 
     let mut warnings = Vec::new();

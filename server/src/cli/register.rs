@@ -16,7 +16,7 @@ pub struct RegisterArgs {
     #[arg(long, default_value = "0,0,1")]
     up: String,
     /// Camera origin in the cloud's frame, "x,y,z" ("0,0,0" for a cloud in the camera frame); improves partial-view fits.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     viewpoint: Option<String>,
     /// Write the completed shape (cloud frame) here.
     #[arg(long)]
@@ -31,14 +31,24 @@ pub fn parse_up(s: &str) -> Result<Option<[f64; 3]>, String> {
     if s.eq_ignore_ascii_case("none") {
         return Ok(None);
     }
+    let v = parse_vec3("--up", s)?;
+    if v.iter().map(|a| a * a).sum::<f64>() <= 1e-12 {
+        return Err(format!("--up {s:?}: a direction cannot be zero (or say \"none\")"));
+    }
+    Ok(Some(v))
+}
+
+/// Three finite numbers separated by commas and/or spaces.
+pub fn parse_vec3(flag: &str, s: &str) -> Result<[f64; 3], String> {
     let v: Vec<f64> = s
-        .split(',')
-        .map(|x| x.trim().parse::<f64>())
+        .split(|c: char| c == ',' || c.is_whitespace())
+        .filter(|x| !x.is_empty())
+        .map(|x| x.parse::<f64>())
         .collect::<Result<_, _>>()
-        .map_err(|e| format!("--up {s:?}: {e}"))?;
+        .map_err(|e| format!("{flag} {s:?}: {e}"))?;
     match v.as_slice() {
-        [x, y, z] if (x * x + y * y + z * z) > 1e-12 && v.iter().all(|a| a.is_finite()) => Ok(Some([*x, *y, *z])),
-        _ => Err(format!("--up {s:?}: expected three numbers, not all zero, or \"none\"")),
+        [x, y, z] if v.iter().all(|a| a.is_finite()) => Ok([*x, *y, *z]),
+        _ => Err(format!("{flag} {s:?}: expected three finite numbers")),
     }
 }
 
@@ -48,7 +58,7 @@ pub fn run(a: RegisterArgs) -> CliResult {
     let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
     let registrar = Registrar::new(space);
     let viewpoint = match &a.viewpoint {
-        Some(v) => Some(parse_up(v)?.ok_or("--viewpoint needs three numbers")?),
+        Some(v) => Some(parse_vec3("--viewpoint", v)?),
         None => None,
     };
     let opts = RegisterOptions { up: parse_up(&a.up)?, viewpoint, seed: a.seed, ..Default::default() };

@@ -9,11 +9,15 @@ const LOG2E: f64 = std::f64::consts::LOG2_E;
 /// 1.5·2⁵²: adding it rounds a double to an integer held in the low mantissa bits.
 const ROUND_MAGIC: f64 = 6755399441055744.0;
 
-/// e^x for x ≤ 0 (x below −700 returns ≈ 0; positive x is not supported).
+/// e^x for x ≤ 0 (x below −600 returns exactly 0; positive x is not supported).
+///
+/// Exactly 0, not a tiny number: the E-step multiplies these by weights and
+/// coordinates, and products below f64's normal range (subnormals) run about a
+/// hundred times slower on x86.
 #[inline(always)]
 pub fn exp_neg(x: f64) -> f64 {
     // A plain select, not f64::max (whose NaN rules block vectorisation).
-    let t = (if x < -700.0 { -700.0 } else { x }) * LOG2E;
+    let t = (if x < -600.0 { -600.0 } else { x }) * LOG2E;
     let r = t + ROUND_MAGIC;
     let n = r - ROUND_MAGIC;
     let f = (t - n) * std::f64::consts::LN_2; // |f| ≤ ln2/2
@@ -30,16 +34,23 @@ pub fn exp_neg(x: f64) -> f64 {
                                         + f * (1.0 / 362880.0 + f * (1.0 / 3628800.0 + f * (1.0 / 39916800.0)))))))))));
     let ni = (r.to_bits() as i64).wrapping_sub(ROUND_MAGIC.to_bits() as i64);
     let scale = f64::from_bits(((ni + 1023) as u64) << 52);
-    p * scale
+    if x < -600.0 {
+        0.0
+    } else {
+        p * scale
+    }
 }
 
 /// e^x for x ≤ 0 in single precision (relative error below 1e-5, from f32
 /// rounding of the argument at large |x|; 1e-7 near 0): eight
 /// lanes per AVX2 register, for the registration's E-step where f32 is plenty.
+/// Below −60 (e⁻⁶⁰ ≈ 1e-26) it returns exactly 0: f32 subnormals begin at
+/// e⁻⁸⁷, and a product with a weight or a coordinate would land among them
+/// (measured: a registration with view weights ran 5× slower from that alone).
 #[inline(always)]
 pub fn exp_neg_f32(x: f32) -> f32 {
     const MAGIC: f32 = 12582912.0; // 1.5·2²³
-    let t = (if x < -87.0 { -87.0 } else { x }) * std::f32::consts::LOG2_E;
+    let t = (if x < -60.0 { -60.0 } else { x }) * std::f32::consts::LOG2_E;
     let r = t + MAGIC;
     let n = r - MAGIC;
     let f = (t - n) * std::f32::consts::LN_2;
@@ -48,7 +59,12 @@ pub fn exp_neg_f32(x: f32) -> f32 {
             + f * (0.5
                 + f * (1.0 / 6.0 + f * (1.0 / 24.0 + f * (1.0 / 120.0 + f * (1.0 / 720.0 + f * (1.0 / 5040.0)))))));
     let ni = (r.to_bits() as i32).wrapping_sub(MAGIC.to_bits() as i32);
-    p * f32::from_bits(((ni + 127) as u32) << 23)
+    let e = p * f32::from_bits(((ni + 127) as u32) << 23);
+    if x < -60.0 {
+        0.0
+    } else {
+        e
+    }
 }
 
 #[cfg(test)]
@@ -71,6 +87,9 @@ mod tests {
             worst32 = worst32.max(((a - b) / b).abs());
         }
         assert!(worst32 < 1e-5, "worst f32 relative error {worst32}");
-        assert!(exp_neg(-1e6) < 1e-300);
+        assert_eq!(exp_neg(-1e6), 0.0);
+        assert_eq!(exp_neg_f32(-61.0), 0.0);
+        // Just above the cut: a normal number, not a subnormal.
+        assert!(exp_neg_f32(-59.9).is_normal() && exp_neg(-599.0).is_normal());
     }
 }

@@ -24,7 +24,7 @@ use faer::Side;
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use kiddo::SquaredEuclidean;
 use nalgebra::{Matrix3, Point3, Rotation3, SymmetricEigen, UnitQuaternion, Vector3};
-use rand::SeedableRng;
+use rand::{Rng, SeedableRng};
 use serde::Serialize;
 use std::time::Instant;
 
@@ -80,6 +80,11 @@ pub struct RegisterOptions {
     /// Iterations of each hypothesis in that race, and the observed points it uses.
     pub race_iters: usize,
     pub race_points: usize,
+    /// Subsample the view evenly over its surface (one point per voxel)
+    /// instead of uniformly over its points. A depth view is dense where the
+    /// tool faces and is near the camera; thin parts that settle the pose (a
+    /// mug's handle) are few of its points and would be few of a random subset.
+    pub even_sampling: bool,
     pub seed: u64,
 }
 
@@ -104,6 +109,7 @@ impl Default for RegisterOptions {
             keep: 4,
             race_iters: 10,
             race_points: 200,
+            even_sampling: true,
             seed: 0,
         }
     }
@@ -225,7 +231,11 @@ impl Registrar {
         check(cloud)?;
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed);
         let all: Vec<P3> = cloud.iter().map(|p| [p.x, p.y, p.z]).collect();
-        let fine_x = subsample(&all, opts.fine_points, &mut rng);
+        let fine_x = if opts.even_sampling {
+            even_subsample(&all, opts.fine_points, &mut rng)
+        } else {
+            subsample(&all, opts.fine_points, &mut rng)
+        };
         let race_x = subsample(&fine_x, opts.race_points, &mut rng);
         let coarse_x = subsample(&race_x, opts.coarse_points, &mut rng);
         let models = if opts.fit_latent { &self.deformable } else { &self.rigid };
@@ -672,6 +682,58 @@ fn subsample(x: &[P3], n: usize, rng: &mut rand_chacha::ChaCha8Rng) -> Vec<P3> {
     let mut idx = rand::seq::index::sample(rng, x.len(), n).into_vec();
     idx.sort_unstable();
     idx.into_iter().map(|i| x[i]).collect()
+}
+
+/// At most `n` points spread evenly over the cloud's surface: a voxel grid
+/// whose cell is sized so that about `n` cells are occupied, one seeded
+/// random point per cell (a seeded random subset of the cells when more).
+/// The cell size is found on a random subset of the cloud (a view is a
+/// surface: occupied cells grow as 1/h²), then one pass over every point
+/// picks the representatives. O(N); farthest-point sampling would be O(N·n).
+fn even_subsample(x: &[P3], n: usize, rng: &mut rand_chacha::ChaCha8Rng) -> Vec<P3> {
+    if x.len() <= n || n == 0 {
+        return x.to_vec();
+    }
+    let (mut lo, mut hi) = (x[0], x[0]);
+    for p in x {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    let key = |p: &P3, h: f64| -> u64 {
+        // 21 bits per axis: cells are at least extent/2^21 wide (h below is far coarser).
+        let c = |k: usize| (((p[k] - lo[k]) / h) as u64).min((1 << 21) - 1);
+        c(0) | c(1) << 21 | c(2) << 42
+    };
+    let probe = subsample(x, 2000.max(4 * n), rng);
+    let mut faces = [(hi[0] - lo[0]) * (hi[1] - lo[1]), (hi[1] - lo[1]) * (hi[2] - lo[2]), (hi[0] - lo[0]) * (hi[2] - lo[2])];
+    faces.sort_by(f64::total_cmp);
+    let mut h = (faces[2].max(1e-12) / n as f64).sqrt();
+    let mut keys: Vec<u64> = Vec::with_capacity(probe.len());
+    for _ in 0..6 {
+        keys.clear();
+        keys.extend(probe.iter().map(|p| key(p, h)));
+        keys.sort_unstable();
+        keys.dedup();
+        // Aim a little above n so the trim below keeps the cover even.
+        let ratio = keys.len() as f64 / (1.15 * n as f64);
+        if (0.95..1.1).contains(&ratio) {
+            break;
+        }
+        h *= ratio.sqrt();
+    }
+    // One representative per cell: sort (key, random tie-break) and keep each cell's first.
+    let mut tagged: Vec<(u64, u32, u32)> = x.iter().enumerate().map(|(i, p)| (key(p, h), rng.random(), i as u32)).collect();
+    tagged.sort_unstable();
+    tagged.dedup_by_key(|t| t.0);
+    let mut chosen: Vec<u32> = tagged.into_iter().map(|t| t.2).collect();
+    if chosen.len() > n {
+        let keep = rand::seq::index::sample(rng, chosen.len(), n).into_vec();
+        chosen = keep.into_iter().map(|k| chosen[k]).collect();
+    }
+    chosen.sort_unstable();
+    chosen.into_iter().map(|i| x[i as usize]).collect()
 }
 
 /// Farthest-point order of the first `n` points (deterministic: starts at index 0),
