@@ -42,6 +42,10 @@ pub enum EvalCommand {
         /// Evaluate one split only (test or train).
         #[arg(long)]
         split: Option<String>,
+        /// A shape-space artefact to evaluate (default: the category's built-in
+        /// space, cached in assets/spaces and built there when missing).
+        #[arg(long)]
+        space: Option<std::path::PathBuf>,
         #[arg(long)]
         json: bool,
     },
@@ -106,10 +110,11 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             seed,
             register_options,
             split,
+            space,
             json,
         } => {
             let register = match register_options {
-                Some(j) => overlay_register_options(&j)?,
+                Some(j) => super::overlay_json(graspd::shape::RegisterOptions::default(), &j, "--register-options")?,
                 None => graspd::shape::RegisterOptions::default(),
             };
             let splits: Vec<Split> = match split.as_deref() {
@@ -119,7 +124,18 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                 Some(other) => return Err(format!("unknown split {other:?} (test or train)").into()),
             };
             let category: Category = category.parse()?;
-            let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
+            let space = match space {
+                Some(path) => {
+                    let s = graspd::shape::ShapeSpace::load(&path)?;
+                    if s.category != category.name() {
+                        return Err(
+                            format!("{}: a {} space, not {}", path.display(), s.category, category.name()).into()
+                        );
+                    }
+                    s
+                }
+                None => builtin::load_or_build(category, &spaces_dir(), |_, _| {})?,
+            };
             let registrar = Registrar::new(space);
             let family = tools::family(category)?;
             let opts = TransferEvalOptions {
@@ -165,21 +181,4 @@ pub fn run(cmd: EvalCommand) -> CliResult {
         }
     }
     Ok(())
-}
-
-/// `RegisterOptions::default()` with the fields of the JSON object `json` replaced.
-fn overlay_register_options(json: &str) -> Result<graspd::shape::RegisterOptions, Box<dyn std::error::Error>> {
-    let overlay: serde_json::Value =
-        serde_json::from_str(json).map_err(|e| format!("--register-options is not JSON: {e}"))?;
-    let serde_json::Value::Object(fields) = overlay else {
-        return Err("--register-options must be a JSON object".into());
-    };
-    let mut base = serde_json::to_value(graspd::shape::RegisterOptions::default())?;
-    for (k, v) in fields {
-        match base.get_mut(&k) {
-            Some(slot) => *slot = v,
-            None => return Err(format!("--register-options: unknown field {k:?}").into()),
-        }
-    }
-    Ok(serde_json::from_value(base).map_err(|e| format!("--register-options: {e}"))?)
 }

@@ -91,3 +91,34 @@ pub fn progress_bar(len: u64, what: &str) -> indicatif::ProgressBar {
 pub fn assets_dir() -> std::path::PathBuf {
     std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets")
 }
+
+/// `base` with the fields of the JSON object `json` laid over it (nested
+/// objects merge field by field); an unknown field is an error naming it.
+pub fn overlay_json<T: serde::Serialize + serde::de::DeserializeOwned>(
+    base: T,
+    json: &str,
+    flag: &str,
+) -> Result<T, Box<dyn std::error::Error>> {
+    fn merge(base: &mut serde_json::Value, over: serde_json::Value, path: &str) -> Result<(), String> {
+        match (base, over) {
+            (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
+                for (k, v) in o {
+                    let slot = b.get_mut(&k).ok_or_else(|| format!("unknown field {path}{k}"))?;
+                    merge(slot, v, &format!("{path}{k}."))?;
+                }
+                Ok(())
+            }
+            (slot, v) => {
+                *slot = v;
+                Ok(())
+            }
+        }
+    }
+    let over: serde_json::Value = serde_json::from_str(json).map_err(|e| format!("{flag} is not JSON: {e}"))?;
+    if !over.is_object() {
+        return Err(format!("{flag} must be a JSON object").into());
+    }
+    let mut value = serde_json::to_value(base)?;
+    merge(&mut value, over, "").map_err(|e| format!("{flag}: {e}"))?;
+    Ok(serde_json::from_value(value).map_err(|e| format!("{flag}: {e}"))?)
+}

@@ -14,6 +14,10 @@ pub enum SpaceCommand {
         /// Artefact directory (default: assets/spaces).
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Build options as a JSON object laid over the defaults (e.g.
+        /// '{"cpd": {"beta": 1.5}}'; field names as in `BuildOptions`).
+        #[arg(long)]
+        options: Option<String>,
         #[arg(long)]
         json: bool,
     },
@@ -25,10 +29,14 @@ pub fn spaces_dir() -> PathBuf {
 
 pub fn run(cmd: SpaceCommand) -> CliResult {
     match cmd {
-        SpaceCommand::Build { category, out, json } => {
+        SpaceCommand::Build { category, out, options, json } => {
             let category: Category = category.parse()?;
+            let opts = match options {
+                Some(j) => super::overlay_json(BuildOptions::default(), &j, "--options")?,
+                None => BuildOptions::default(),
+            };
             let bar = progress_bar(10, "instances");
-            let (space, report) = builtin::build(category, &BuildOptions::default(), |i, n| {
+            let (space, report) = builtin::build(category, &opts, |i, n| {
                 bar.set_length(n as u64);
                 bar.set_position(i as u64);
             })?;

@@ -1,7 +1,7 @@
 //! Shape spaces of the built-in procedural families, built on first use and
 //! cached as artefacts (the build is deterministic and takes about a second).
 
-use super::space::{BuildOptions, BuildReport, NamedPoint, ShapeSpace, SpaceError};
+use super::space::{BuildOptions, BuildReport, NamedPoint, ShapeSpace, SpaceError, TrainingShape};
 use crate::tools::{self, Category, Split};
 use std::path::{Path, PathBuf};
 
@@ -24,8 +24,15 @@ pub fn build(
     })?;
     let keypoints =
         canonical.keypoints.iter().map(|k| NamedPoint { name: k.name.clone(), position: k.position }).collect();
-    let training: Vec<(String, crate::geometry::TriMesh)> =
-        family.iter().filter(|i| i.split == Split::Train).map(|i| (i.name.clone(), i.mesh.clone())).collect();
+    let training: Vec<TrainingShape> = family
+        .iter()
+        .filter(|i| i.split == Split::Train)
+        .map(|i| TrainingShape {
+            name: i.name.clone(),
+            mesh: i.mesh.clone(),
+            keypoints: i.keypoints.iter().map(|k| NamedPoint { name: k.name.clone(), position: k.position }).collect(),
+        })
+        .collect();
     ShapeSpace::build(category.name(), &canonical.mesh, keypoints, &training, opts, progress)
 }
 
@@ -38,7 +45,8 @@ pub fn load_or_build(
 ) -> Result<ShapeSpace, SpaceError> {
     let path = artefact_path(cache_dir, category);
     match ShapeSpace::load(&path) {
-        Ok(s) => return Ok(s),
+        Ok(s) if s.build == BuildOptions::default() => return Ok(s),
+        Ok(_) => tracing::info!("rebuilding {}: built with other options than this graspd's", path.display()),
         Err(e) if path.exists() => tracing::warn!("rebuilding: {e}"),
         Err(_) => tracing::info!("building the {} shape space (no artefact at {})", category.name(), path.display()),
     }

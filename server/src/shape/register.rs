@@ -707,7 +707,8 @@ fn even_subsample(x: &[P3], n: usize, rng: &mut rand_chacha::ChaCha8Rng) -> Vec<
         c(0) | c(1) << 21 | c(2) << 42
     };
     let probe = subsample(x, 2000.max(4 * n), rng);
-    let mut faces = [(hi[0] - lo[0]) * (hi[1] - lo[1]), (hi[1] - lo[1]) * (hi[2] - lo[2]), (hi[0] - lo[0]) * (hi[2] - lo[2])];
+    let mut faces =
+        [(hi[0] - lo[0]) * (hi[1] - lo[1]), (hi[1] - lo[1]) * (hi[2] - lo[2]), (hi[0] - lo[0]) * (hi[2] - lo[2])];
     faces.sort_by(f64::total_cmp);
     let mut h = (faces[2].max(1e-12) / n as f64).sqrt();
     let mut keys: Vec<u64> = Vec::with_capacity(probe.len());
@@ -724,7 +725,8 @@ fn even_subsample(x: &[P3], n: usize, rng: &mut rand_chacha::ChaCha8Rng) -> Vec<
         h *= ratio.sqrt();
     }
     // One representative per cell: sort (key, random tie-break) and keep each cell's first.
-    let mut tagged: Vec<(u64, u32, u32)> = x.iter().enumerate().map(|(i, p)| (key(p, h), rng.random(), i as u32)).collect();
+    let mut tagged: Vec<(u64, u32, u32)> =
+        x.iter().enumerate().map(|(i, p)| (key(p, h), rng.random(), i as u32)).collect();
     tagged.sort_unstable();
     tagged.dedup_by_key(|t| t.0);
     let mut chosen: Vec<u32> = tagged.into_iter().map(|t| t.2).collect();
