@@ -193,6 +193,16 @@ fn trial(
     add_outliers(&mut cloud, opts.outliers, rng);
 
     // Ours.
+    if std::env::var_os("GRASPD_EVAL_TRACE").is_some() {
+        let (r, p, y) = rot.euler_angles();
+        eprintln!(
+            "{} view {view}: truth rpy {:.0} {:.0} {:.0}°",
+            inst.name,
+            r.to_degrees(),
+            p.to_degrees(),
+            y.to_degrees()
+        );
+    }
     let t0 = Instant::now();
     let t = cam_pose.translation.vector;
     let viewpoint = (opts.known_viewpoint && !opts.full_surface).then_some([t.x, t.y, t.z]);

@@ -80,6 +80,15 @@ pub struct RegisterOptions {
     /// Iterations of each hypothesis in that race, and the observed points it uses.
     pub race_iters: usize,
     pub race_points: usize,
+    /// Race penalty (nats per observed point) of a tool upside down relative to
+    /// its canonical rest pose, scaled by (1 − cos tilt)/2 (half on its side).
+    /// Needs `up`. Tools on a table mostly rest as they were modelled; without
+    /// it a flat hammer flipped over its handle explains a view about as well.
+    pub upright_prior: f64,
+    /// Turns about the up axis scored around the race's winner (0: no sweep).
+    pub yaw_sweep_steps: usize,
+    /// Score margin (nats per observed point) within which swept turns explain the view equally well.
+    pub yaw_sweep_margin: f64,
     /// Subsample the view evenly over its surface (one point per voxel)
     /// instead of uniformly over its points. A depth view is dense where the
     /// tool faces and is near the camera; thin parts that settle the pose (a
@@ -109,6 +118,9 @@ impl Default for RegisterOptions {
             keep: 4,
             race_iters: 10,
             race_points: 200,
+            upright_prior: 0.1,
+            yaw_sweep_steps: 24,
+            yaw_sweep_margin: 0.05,
             even_sampling: true,
             seed: 0,
         }
@@ -306,17 +318,66 @@ impl Registrar {
                 let y: Vec<P3> = models.race.evaluate(&fit.latent).iter().map(|y| fit.pose.apply(y)).collect();
                 fs.violation_fraction(&y, models.race_normals.iter().map(|n| fit.pose.r * Vector3::from(*n)))
             });
-            let score = fit.nll / race_x.len() as f64 + FREE_SPACE_PENALTY * violation;
+            let tilt = opts.up.map_or(0.0, |up| {
+                let up = Vector3::from(up).try_normalize(1e-9).unwrap_or_else(Vector3::z);
+                (1.0 - (fit.pose.r * Vector3::z()).dot(&up)) / 2.0
+            });
+            let score = fit.nll / race_x.len() as f64 + FREE_SPACE_PENALTY * violation + opts.upright_prior * tilt;
+            if trace_enabled() {
+                let q = UnitQuaternion::from_matrix(&fit.pose.r);
+                let (roll, pitch, yaw) = q.euler_angles();
+                eprintln!(
+                    "   race: rpy {:.0} {:.0} {:.0}°, nll/pt {:.3}, free-space violation {:.3}, score {:.3}",
+                    roll.to_degrees(),
+                    pitch.to_degrees(),
+                    yaw.to_degrees(),
+                    fit.nll / race_x.len() as f64,
+                    violation,
+                    score
+                );
+            }
             raced.push((score, fit.pose.r));
             if best.as_ref().is_none_or(|b| score < b.0) {
                 best = Some((score, fit));
             }
         }
-        let (lead_score, lead) = best.expect("at least one hypothesis");
-        let ambiguous_pose = raced.iter().any(|(sc, r)| {
+        let (lead_score, mut lead) = best.expect("at least one hypothesis");
+        let mut ambiguous_pose = raced.iter().any(|(sc, r)| {
             let angle = Rotation3::from_matrix_unchecked(lead.pose.r.transpose() * r).angle();
             angle > 30f64.to_radians() && *sc - lead_score < AMBIGUITY_MARGIN
         });
+        // On a table, the turn about the up axis is what a view most often leaves
+        // open (a mug with its handle hidden): sweep it, and take the middle of the
+        // turns the view allows rather than whichever edge EM happened to reach.
+        if let (Some(up), true) = (opts.up, opts.yaw_sweep_steps >= 4) {
+            let up = Vector3::from(up).try_normalize(1e-9).unwrap_or_else(Vector3::z);
+            let sweep = YawSweep {
+                model: &models.race,
+                normals: &models.race_normals,
+                x: &race_x,
+                viewpoint,
+                free_space: free_space.as_ref(),
+                origin: Vector3::from(self.space.norm.forward(&[0.0; 3])),
+            };
+            let (centre, open) = sweep.run(&lead, up, opts);
+            ambiguous_pose |= open;
+            if let Some(start) = centre {
+                let fit = em(
+                    &models.race,
+                    View { normals: &models.race_normals, viewpoint },
+                    &race_x,
+                    start,
+                    lead.latent.clone(),
+                    None,
+                    Some(lead.sigma2),
+                    opts,
+                    opts.race_iters,
+                    &self.space.norm,
+                );
+                iterations += fit.iterations;
+                lead = fit;
+            }
+        }
         stage.race = ms(t_stage);
         let t_stage = Instant::now();
         let fit = em(
@@ -534,6 +595,106 @@ impl View<'_> {
     }
 }
 
+/// The turns about the up axis of a fitted pose that explain a view: each
+/// turned pose gets its translation re-fitted (one EM half-step) and is scored
+/// like the race (likelihood per point plus the free-space penalty).
+struct YawSweep<'a> {
+    model: &'a LinearModel,
+    normals: &'a [P3],
+    x: &'a [P3],
+    viewpoint: Option<Vector3<f64>>,
+    free_space: Option<&'a FreeSpace>,
+    /// The canonical frame's origin in normalised model coordinates.
+    origin: Vector3<f64>,
+}
+
+impl YawSweep<'_> {
+    /// The middle of the arc of turns scoring within the margin of the best
+    /// (None when that is the lead itself), and whether the arc is wider than 30°.
+    fn run(&self, lead: &Fit, up: Vector3<f64>, opts: &RegisterOptions) -> (Option<Pose>, bool) {
+        let k = opts.yaw_sweep_steps;
+        let step = std::f64::consts::TAU / k as f64;
+        let y_model = self.model.evaluate(&lead.latent);
+        // Turn about the up line through the canonical frame's origin: the
+        // category's main body axis (the built-in families are built so).
+        let centroid = self.origin;
+        let pivot = Vector3::from(lead.pose.apply(&[centroid.x, centroid.y, centroid.z]));
+        let axis = nalgebra::Unit::new_normalize(up);
+        let mut estep = new_estep(self.x);
+        let mut post = Posteriors::default();
+        let view = View { normals: self.normals, viewpoint: self.viewpoint };
+        let mut weights = Vec::new();
+        let turned = |i: usize| -> Pose {
+            let r = Rotation3::from_axis_angle(&axis, i as f64 * step).into_inner() * lead.pose.r;
+            Pose { r, s: lead.pose.s, t: pivot - lead.pose.s * (r * centroid) }
+        };
+        let scores: Vec<f64> = (0..k)
+            .map(|i| {
+                let mut pose = turned(i);
+                let mut y_world: Vec<P3> = y_model.iter().map(|y| pose.apply(y)).collect();
+                let w = view.weights(&pose, &y_world, &mut weights);
+                estep.run_weighted(&y_world, w, lead.sigma2, opts.outlier_weight, &mut post);
+                if post.np > 1e-9 {
+                    let (mut mx, mut my) = (Vector3::zeros(), Vector3::zeros());
+                    for (xn, w) in self.x.iter().zip(&post.pt1) {
+                        mx += Vector3::from(*xn) * *w;
+                    }
+                    for (ym, w) in y_model.iter().zip(&post.p1) {
+                        my += Vector3::from(*ym) * *w;
+                    }
+                    pose.t = mx / post.np - pose.s * (pose.r * (my / post.np));
+                    y_world.iter_mut().zip(&y_model).for_each(|(w, y)| *w = pose.apply(y));
+                }
+                let w = view.weights(&pose, &y_world, &mut weights);
+                estep.run_weighted(&y_world, w, lead.sigma2, opts.outlier_weight, &mut post);
+                let violation = self.free_space.map_or(0.0, |fs| {
+                    fs.violation_fraction(&y_world, self.normals.iter().map(|n| pose.r * Vector3::from(*n)))
+                });
+                post.neg_log_likelihood / self.x.len().max(1) as f64 + FREE_SPACE_PENALTY * violation
+            })
+            .collect();
+        let best = (0..k).min_by(|&a, &b| scores[a].total_cmp(&scores[b])).unwrap_or(0);
+        let ok = |i: usize| scores[i % k] <= scores[best] + opts.yaw_sweep_margin;
+        let (mut left, mut right) = (0, 0);
+        while left + right + 1 < k && ok(best + k - left - 1) {
+            left += 1;
+        }
+        while left + right + 1 < k && ok(best + right + 1) {
+            right += 1;
+        }
+        let open = (left + right) as f64 * step > 30f64.to_radians();
+        if trace_enabled() {
+            let s: Vec<String> = scores.iter().map(|v| format!("{:.2}", v - scores[best])).collect();
+            eprintln!(
+                "   yaw sweep (step {:.0}°): best {} arc -{left}..+{right}: [{}]",
+                step.to_degrees(),
+                best,
+                s.join(" ")
+            );
+        }
+        // Middle of the arc, in steps from the lead (half steps allowed).
+        let mid = best as f64 + (right as f64 - left as f64) / 2.0;
+        let mid = if mid > k as f64 / 2.0 { mid - k as f64 } else { mid };
+        if mid.abs() < 0.25 {
+            return (None, open);
+        }
+        let r = Rotation3::from_axis_angle(&axis, mid * step).into_inner() * lead.pose.r;
+        (Some(Pose { r, s: lead.pose.s, t: pivot - lead.pose.s * (r * centroid) }), open)
+    }
+}
+
+/// The E-step set-up of registration fits.
+fn new_estep(x: &[P3]) -> EStep {
+    let mut estep = EStep::new(x);
+    // A fit needs the pairs within a few σ only (e^{-12.5} beyond 5σ).
+    estep.cutoff_sigmas = 5.0;
+    estep.single_precision = true;
+    // Registration sets are small (≤ 400 a side): the f32 dense sums beat
+    // the grid until the cutoff ball is a small part of the view.
+    estep.truncate_below = 0.2;
+    estep
+}
+
 /// EM over pose (and latent, when `prior` is given).
 #[allow(clippy::too_many_arguments)]
 fn em(
@@ -549,13 +710,7 @@ fn em(
     norm: &Normalization,
 ) -> Fit {
     let q = latent.len();
-    let mut estep = EStep::new(x);
-    // A fit needs the pairs within a few σ only (e^{-12.5} beyond 5σ).
-    estep.cutoff_sigmas = 5.0;
-    estep.single_precision = true;
-    // Registration sets are small (≤ 400 a side): the f32 dense sums beat
-    // the grid until the cutoff ball is a small part of the view.
-    estep.truncate_below = 0.2;
+    let mut estep = new_estep(x);
     let mut post = Posteriors::default();
     let mut y_model = Vec::with_capacity(model.len());
     model.evaluate_into(&latent, &mut y_model);
@@ -672,6 +827,12 @@ fn check(cloud: &[Point3<f64>]) -> Result<(), RegisterError> {
         return Err(RegisterError::AbsurdScale { extent_m: extent, min_m, max_m });
     }
     Ok(())
+}
+
+/// Per-hypothesis diagnostics on stderr (GRASPD_REGISTER_TRACE set).
+fn trace_enabled() -> bool {
+    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *ON.get_or_init(|| std::env::var_os("GRASPD_REGISTER_TRACE").is_some())
 }
 
 /// A seeded subset of at most `n` points.
