@@ -71,8 +71,10 @@ pub struct RegisterOptions {
     pub coarse_iters: usize,
     pub fine_points: usize,
     pub fine_iters: usize,
-    /// EM stops when the relative change of the negative log-likelihood falls below this.
+    /// The final fit stops when the relative change of the negative log-likelihood falls below this.
     pub tol: f64,
+    /// The same for the coarse stage and the race, whose job is to rank poses, not to polish one.
+    pub ranking_tol: f64,
     /// Yaw hypotheses of the upright tool when `up` is known.
     pub yaws: usize,
     /// Hypotheses kept from the coarse stage for the race at full resolution.
@@ -113,7 +115,8 @@ impl Default for RegisterOptions {
             coarse_iters: 15,
             fine_points: 400,
             fine_iters: 40,
-            tol: 1e-7,
+            tol: 1e-5,
+            ranking_tol: 1e-4,
             yaws: 6,
             keep: 4,
             race_iters: 10,
@@ -256,6 +259,7 @@ impl Registrar {
         let coarse_normals = &models.coarse_normals[..coarse_n];
         let viewpoint = opts.viewpoint.map(Vector3::from);
 
+        let ranking = RegisterOptions { tol: opts.ranking_tol, ..*opts };
         let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
         let mut stage = StageTimes::default();
         let t_stage = Instant::now();
@@ -273,7 +277,7 @@ impl Registrar {
                     vec![0.0; 0],
                     None,
                     None,
-                    opts,
+                    &ranking,
                     opts.coarse_iters,
                     &self.space.norm,
                 );
@@ -308,7 +312,7 @@ impl Registrar {
                 vec![0.0; q],
                 None,
                 Some(2.0 * sigma2),
-                opts,
+                &ranking,
                 opts.race_iters,
                 &self.space.norm,
             );
@@ -370,7 +374,7 @@ impl Registrar {
                     lead.latent.clone(),
                     None,
                     Some(lead.sigma2),
-                    opts,
+                    &ranking,
                     opts.race_iters,
                     &self.space.norm,
                 );
