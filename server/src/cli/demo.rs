@@ -160,12 +160,14 @@ pub fn run(cmd: DemoCommand) -> CliResult {
             let close_opts =
                 CloseOptions { closed: closed.as_deref().map(parse_numbers).transpose()?, ..CloseOptions::default() };
             let closed = close_until_contact(&hand, &wrist, &scene, &close_opts)?;
-            let demo = Demonstration::new(
+            let mut demo = Demonstration::new(
                 &hand,
                 &format!("{}/canonical", category.name()),
                 &closed.grasp,
                 &Isometry3::identity(),
             );
+            demo.table = !no_table;
+            demo.free_fingers = free.clone();
             let check_opts =
                 DemoCheckOptions { contact_mm, max_penetration_mm, free_fingers: free, ..Default::default() };
             let keypoints = demo.keypoints(&hand)?;
@@ -226,7 +228,10 @@ pub fn run(cmd: DemoCommand) -> CliResult {
             let grasp = demo.grasp_at(&hand, &Isometry3::identity())?;
             let keypoints = demo.keypoints(&hand)?;
             let collider = canonical_collider(category)?;
-            let scene = Scene { tool: Some(&collider), table_height_world: (!no_table).then_some(0.0) };
+            // The file's own scene and free fingers, unless the command line says more.
+            let table = demo.table && !no_table;
+            let scene = Scene { tool: Some(&collider), table_height_world: table.then_some(0.0) };
+            let free = if free.is_empty() { demo.free_fingers.clone() } else { free };
             let check_opts = DemoCheckOptions {
                 contact_mm,
                 max_penetration_mm,

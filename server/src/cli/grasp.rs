@@ -429,7 +429,8 @@ pub fn run_eval(a: EvalGraspArgs) -> CliResult {
     let training: Vec<&tools::Instance> = family.iter().filter(|i| i.split == Split::Train).collect();
     let mut solve = SolveOptions { starts: a.starts.max(1), ..SolveOptions::default() };
     solve.penetration.enabled = !a.no_penetration;
-    let opts = GraspEvalOptions { solve, repeats: a.repeats, table: !a.no_table };
+    // A demonstration made without a table is evaluated without one.
+    let opts = GraspEvalOptions { solve, repeats: a.repeats, table: demo.table && !a.no_table };
     let bar = progress_bar(training.len() as u64, "instances");
     let report = evaluate_grasps(&hand, &space, &demo, canonical, &training, &opts, || bar.inc(1))?;
     bar.finish_and_clear();

@@ -199,6 +199,19 @@ pub struct Demonstration {
     pub actuated: std::collections::BTreeMap<String, f64>,
     /// The hand's keypoints in the tool frame, in the hand's keypoint order.
     pub keypoints_tool: Vec<NamedPoint>,
+    /// The scene the grasp was made in: the tool resting on the table plane
+    /// z = 0 of its frame (true), or held free of it (false: a hammer lying flat
+    /// cannot be wrapped by fingers that cannot pass under its handle).
+    #[serde(default = "default_true")]
+    pub table: bool,
+    /// Fingers the grasp leaves off the tool (e.g. a ring finger that its
+    /// coupling to the little finger stops short).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub free_fingers: Vec<String>,
+}
+
+fn default_true() -> bool {
+    true
 }
 
 /// A pose in a file: translation (metres) and unit quaternion (x, y, z, w).
@@ -293,6 +306,8 @@ impl Demonstration {
             wrist_pose_tool: PoseFile::from_isometry(&(to_tool * grasp.wrist_pose_world)),
             actuated: hand.actuated_names().map(str::to_owned).zip(grasp.actuated.iter().copied()).collect(),
             keypoints_tool,
+            table: true,
+            free_fingers: Vec::new(),
         }
     }
 
