@@ -639,14 +639,7 @@ impl YawSweep<'_> {
                 let w = view.weights(&pose, &y_world, &mut weights);
                 estep.run_weighted(&y_world, w, lead.sigma2, opts.outlier_weight, &mut post);
                 if post.np > 1e-9 {
-                    let (mut mx, mut my) = (Vector3::zeros(), Vector3::zeros());
-                    for (xn, w) in self.x.iter().zip(&post.pt1) {
-                        mx += Vector3::from(*xn) * *w;
-                    }
-                    for (ym, w) in y_model.iter().zip(&post.p1) {
-                        my += Vector3::from(*ym) * *w;
-                    }
-                    pose.t = mx / post.np - pose.s * (pose.r * (my / post.np));
+                    pose.t = fitted_translation(self.x, &y_model, &post, &pose);
                     y_world.iter_mut().zip(&y_model).for_each(|(w, y)| *w = pose.apply(y));
                 }
                 let w = view.weights(&pose, &y_world, &mut weights);
@@ -685,6 +678,19 @@ impl YawSweep<'_> {
         let r = Rotation3::from_axis_angle(&axis, mid * step).into_inner() * lead.pose.r;
         (Some(Pose { r, s: lead.pose.s, t: pivot - lead.pose.s * (r * centroid) }), open)
     }
+}
+
+/// The translation that best maps the model onto the data for the pose's
+/// rotation and scale, given the posteriors: t = μx − s·R·μy.
+fn fitted_translation(x: &[P3], y_model: &[P3], post: &Posteriors, pose: &Pose) -> Vector3<f64> {
+    let (mut mx, mut my) = (Vector3::zeros(), Vector3::zeros());
+    for (xn, w) in x.iter().zip(&post.pt1) {
+        mx += Vector3::from(*xn) * *w;
+    }
+    for (ym, w) in y_model.iter().zip(&post.p1) {
+        my += Vector3::from(*ym) * *w;
+    }
+    mx / post.np - pose.s * (pose.r * (my / post.np))
 }
 
 /// The E-step set-up of registration fits.
@@ -743,14 +749,7 @@ fn em(
             norm.scale
         };
         // Translation re-derived for a clamped scale: t = μx − s R μy.
-        let (mut mx, mut my) = (Vector3::zeros(), Vector3::zeros());
-        for (xn, w) in x.iter().zip(&post.pt1) {
-            mx += Vector3::from(*xn) * *w;
-        }
-        for (ym, w) in y_model.iter().zip(&post.p1) {
-            my += Vector3::from(*ym) * *w;
-        }
-        pose.t = mx / post.np - pose.s * (pose.r * (my / post.np));
+        pose.t = fitted_translation(x, &y_model, &post, &pose);
         // Latent (MAP): (Σ P1 BᵀB + σ²/s² Λ⁻¹) ℓ = Σ Bᵀ(PX̃ − P1 ȳ).
         if let Some(var) = prior {
             if q > 0 {
