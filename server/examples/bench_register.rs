@@ -1,6 +1,7 @@
 //! Registration time per stage on the test views of one category (the
 //! 2,000-point target of the shape-engine issue is a subsample of these).
-//! `cargo run --release --example bench_register -- mug [repeats]`
+//! `cargo run --release --example bench_register -- mug [repeats]`; set
+//! VIEWPOINT=known or VIEWPOINT=unknown to time one of the two cases only.
 use graspd::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
 use graspd::shape::{builtin, RegisterOptions, Registrar};
 use graspd::tools::{self, Category, Split};

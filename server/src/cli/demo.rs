@@ -54,6 +54,7 @@ pub enum DemoCommand {
         /// Tool category (default: the part of the file's "tool" before '/').
         #[arg(long)]
         category: Option<String>,
+        /// Fingers allowed to stay off the tool, comma separated (default: the file's `free_fingers`).
         #[arg(long, value_delimiter = ',')]
         free: Vec<String>,
         #[arg(long, default_value_t = 3.0)]
@@ -63,6 +64,7 @@ pub enum DemoCommand {
         /// Largest allowed distance of the file's keypoints to its grasp's own, millimetres.
         #[arg(long, default_value_t = 1.0)]
         max_keypoint_mismatch_mm: f64,
+        /// No table, even where the file says it was made with one (`"table": true`, the default).
         #[arg(long)]
         no_table: bool,
         #[arg(long)]

@@ -2,7 +2,7 @@
 //! (cloud → registration → grasp → pre-grasp) and `graspd eval grasp`
 //! (the paper's Table I on the training instances).
 
-use super::register::{parse_up, parse_vec3};
+use super::register::ViewArgs;
 use super::space::spaces_dir;
 use super::{print_json, progress_bar, CliResult};
 use clap::Args;
@@ -43,13 +43,8 @@ pub struct GraspArgs {
     /// Segmented partial cloud of one tool (.ply, .pcd, .xyz, .npy), metres.
     #[arg(long)]
     cloud: PathBuf,
-    /// World up in the cloud's frame, "x,y,z"; "none" when unknown (then no table).
-    #[arg(long, default_value = "0,0,1")]
-    up: String,
-    /// The camera's position in the cloud's frame, "x,y,z" ("0,0,0" for a cloud in
-    /// the camera frame): model points facing away from it are not expected in the view.
-    #[arg(long, allow_hyphen_values = true)]
-    viewpoint: Option<String>,
+    #[command(flatten)]
+    view: ViewArgs,
     /// Table top height in the cloud's frame (z up). Default: the lowest point of the
     /// cloud or of the registered shape, whichever is lower.
     #[arg(long, allow_hyphen_values = true)]
@@ -292,8 +287,7 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
     let demo_keypoints = demo.keypoints(&hand)?;
     let canonical = canonical_instance(category)?;
     let cloud = graspd::io::read_cloud(&a.cloud)?;
-    let up = parse_up(&a.up)?;
-    let viewpoint = a.viewpoint.as_deref().map(|v| parse_vec3("--viewpoint", v)).transpose()?;
+    let (up, viewpoint) = a.view.parse()?;
 
     let t_load = Instant::now();
     let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;

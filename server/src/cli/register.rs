@@ -12,12 +12,8 @@ pub struct RegisterArgs {
     /// Segmented partial cloud of one tool (.ply, .pcd, .xyz, .npy), metres.
     #[arg(long)]
     cloud: PathBuf,
-    /// World up in the cloud's frame, "x,y,z" (default: z up); "none" when unknown.
-    #[arg(long, default_value = "0,0,1")]
-    up: String,
-    /// Camera origin in the cloud's frame, "x,y,z" ("0,0,0" for a cloud in the camera frame); improves partial-view fits.
-    #[arg(long, allow_hyphen_values = true)]
-    viewpoint: Option<String>,
+    #[command(flatten)]
+    view: ViewArgs,
     /// Write the completed shape (cloud frame) here.
     #[arg(long)]
     shape_out: Option<PathBuf>,
@@ -27,7 +23,28 @@ pub struct RegisterArgs {
     json: bool,
 }
 
-pub fn parse_up(s: &str) -> Result<Option<[f64; 3]>, String> {
+/// Where the cloud was seen from: the priors a registration takes from the set-up.
+#[derive(Args)]
+pub struct ViewArgs {
+    /// World up in the cloud's frame, "x,y,z" (default: z up); "none" when unknown
+    /// (`graspd grasp` then puts no table under the tool).
+    #[arg(long, default_value = "0,0,1")]
+    up: String,
+    /// The camera's position in the cloud's frame, "x,y,z" ("0,0,0" for a cloud in
+    /// the camera frame): model points facing away from it are not expected in the view.
+    #[arg(long, allow_hyphen_values = true)]
+    viewpoint: Option<String>,
+}
+
+impl ViewArgs {
+    /// (up, viewpoint), parsed.
+    pub fn parse(&self) -> Result<(Option<[f64; 3]>, Option<[f64; 3]>), String> {
+        let viewpoint = self.viewpoint.as_deref().map(|v| parse_vec3("--viewpoint", v)).transpose()?;
+        Ok((parse_up(&self.up)?, viewpoint))
+    }
+}
+
+fn parse_up(s: &str) -> Result<Option<[f64; 3]>, String> {
     if s.eq_ignore_ascii_case("none") {
         return Ok(None);
     }
@@ -39,7 +56,7 @@ pub fn parse_up(s: &str) -> Result<Option<[f64; 3]>, String> {
 }
 
 /// Three finite numbers separated by commas and/or spaces.
-pub fn parse_vec3(flag: &str, s: &str) -> Result<[f64; 3], String> {
+fn parse_vec3(flag: &str, s: &str) -> Result<[f64; 3], String> {
     let v: Vec<f64> = s
         .split(|c: char| c == ',' || c.is_whitespace())
         .filter(|x| !x.is_empty())
@@ -57,11 +74,8 @@ pub fn run(a: RegisterArgs) -> CliResult {
     let cloud = graspd::io::read_cloud(&a.cloud)?;
     let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
     let registrar = Registrar::new(space);
-    let viewpoint = match &a.viewpoint {
-        Some(v) => Some(parse_vec3("--viewpoint", v)?),
-        None => None,
-    };
-    let opts = RegisterOptions { up: parse_up(&a.up)?, viewpoint, seed: a.seed, ..Default::default() };
+    let (up, viewpoint) = a.view.parse()?;
+    let opts = RegisterOptions { up, viewpoint, seed: a.seed, ..Default::default() };
     let reg = registrar.register(&cloud, &opts)?;
     if let Some(p) = &a.shape_out {
         graspd::io::write_cloud(p, &registrar.completed_shape(&reg))?;

@@ -193,7 +193,8 @@ fn trial(
     add_outliers(&mut cloud, opts.outliers, rng);
 
     // Ours.
-    if std::env::var_os("GRASPD_EVAL_TRACE").is_some() {
+    let trace = std::env::var_os("GRASPD_EVAL_TRACE").is_some();
+    if trace {
         let (r, p, y) = rot.euler_angles();
         eprintln!(
             "{} view {view}: truth rpy {:.0} {:.0} {:.0}°",
@@ -250,7 +251,7 @@ fn trial(
         rotation_error_deg,
     })
     .inspect(|t| {
-        if std::env::var_os("GRASPD_EVAL_TRACE").is_some() {
+        if trace {
             let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
             eprintln!(
                 "{} view {view}: {} pts, ambiguous {}, rot err {:.1}°, scale {:.3} (true {scale:.3}), inliers {:.2}, kp mean ours {:.1} canonical {:.1} cpd {:.1} mm, {:.1} ms",

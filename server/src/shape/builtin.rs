@@ -22,18 +22,15 @@ pub fn build(
         path: category.name().into(),
         reason: "family has no canonical instance".into(),
     })?;
-    let keypoints =
-        canonical.keypoints.iter().map(|k| NamedPoint { name: k.name.clone(), position: k.position }).collect();
+    let keypoints_of = |i: &tools::Instance| -> Vec<NamedPoint> {
+        i.keypoints.iter().map(|k| NamedPoint { name: k.name.clone(), position: k.position }).collect()
+    };
     let training: Vec<TrainingShape> = family
         .iter()
         .filter(|i| i.split == Split::Train)
-        .map(|i| TrainingShape {
-            name: i.name.clone(),
-            mesh: i.mesh.clone(),
-            keypoints: i.keypoints.iter().map(|k| NamedPoint { name: k.name.clone(), position: k.position }).collect(),
-        })
+        .map(|i| TrainingShape { name: i.name.clone(), mesh: i.mesh.clone(), keypoints: keypoints_of(i) })
         .collect();
-    ShapeSpace::build(category.name(), &canonical.mesh, keypoints, &training, opts, progress)
+    ShapeSpace::build(category.name(), &canonical.mesh, keypoints_of(canonical), &training, opts, progress)
 }
 
 /// Loads the cached artefact, or builds and caches it when it is missing,

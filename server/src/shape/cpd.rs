@@ -16,6 +16,7 @@ use super::kernel::{gaussian, LowRankKernel};
 use faer::prelude::*;
 use faer::Side;
 use nalgebra::{Matrix3, Point3, Vector3};
+use std::borrow::Cow;
 use std::time::Instant;
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -404,13 +405,20 @@ pub fn non_rigid_with_landmarks(
         // M-step (Woodbury): W = (F − dP Q (sΛ⁻¹ + Qᵀ dP Q)⁻¹ Qᵀ F) / s,
         // F = PX − dP·Y0, s = λσ². No division by P1, so unmatched points are fine.
         let s = opts.lambda * sigma2;
-        let (mut p1, mut px) = (post.p1.clone(), post.px.clone());
-        for &(i, t) in &pins {
-            p1[i] += weight;
-            for d in 0..3 {
-                px[i][d] += weight * t[d];
+        // Landmarks join P1 and PX for the M-step only (σ² below stays the data's);
+        // plain CPD, the common case, borrows the posteriors as they are.
+        let (p1, px): (Cow<[f64]>, Cow<[P3]>) = if pins.is_empty() {
+            (Cow::Borrowed(&post.p1), Cow::Borrowed(&post.px))
+        } else {
+            let (mut p1, mut px) = (post.p1.clone(), post.px.clone());
+            for &(i, t) in &pins {
+                p1[i] += weight;
+                for d in 0..3 {
+                    px[i][d] += weight * t[d];
+                }
             }
-        }
+            (Cow::Owned(p1), Cow::Owned(px))
+        };
         let f = Mat::from_fn(m, 3, |i, d| px[i][d] - p1[i] * y0[i][d]);
         for j in 0..k {
             for i in 0..m {

@@ -258,13 +258,14 @@ impl Registrar {
         let coarse_model = models.coarse.select(&(0..coarse_n).collect::<Vec<_>>());
         let coarse_normals = &models.coarse_normals[..coarse_n];
         let viewpoint = opts.viewpoint.map(Vector3::from);
+        let up = up_direction(opts);
 
         let ranking = RegisterOptions { tol: opts.ranking_tol, ..*opts };
         let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
         let mut stage = StageTimes::default();
         let t_stage = Instant::now();
         // Coarse: every hypothesis, mean shape, similarity only.
-        let hyps = self.hypotheses(&fine_x, opts);
+        let hyps = self.hypotheses(&fine_x, up, opts.yaws);
         let mut scored: Vec<(f64, Pose, f64)> = hyps
             .iter()
             .map(|&pose| {
@@ -322,10 +323,7 @@ impl Registrar {
                 let y: Vec<P3> = models.race.evaluate(&fit.latent).iter().map(|y| fit.pose.apply(y)).collect();
                 fs.violation_fraction(&y, models.race_normals.iter().map(|n| fit.pose.r * Vector3::from(*n)))
             });
-            let tilt = opts.up.map_or(0.0, |up| {
-                let up = Vector3::from(up).try_normalize(1e-9).unwrap_or_else(Vector3::z);
-                (1.0 - (fit.pose.r * Vector3::z()).dot(&up)) / 2.0
-            });
+            let tilt = up.map_or(0.0, |up| (1.0 - (fit.pose.r * Vector3::z()).dot(&up)) / 2.0);
             let score = fit.nll / race_x.len() as f64 + FREE_SPACE_PENALTY * violation + opts.upright_prior * tilt;
             if trace_enabled() {
                 let q = UnitQuaternion::from_matrix(&fit.pose.r);
@@ -353,8 +351,7 @@ impl Registrar {
         // On a table, the turn about the up axis is what a view most often leaves
         // open (a mug with its handle hidden): sweep it, and take the middle of the
         // turns the view allows rather than whichever edge EM happened to reach.
-        if let (Some(up), true) = (opts.up, opts.yaw_sweep_steps >= 4) {
-            let up = Vector3::from(up).try_normalize(1e-9).unwrap_or_else(Vector3::z);
+        if let (Some(up), true) = (up, opts.yaw_sweep_steps >= 4) {
             let sweep = YawSweep {
                 model: &models.race,
                 normals: &models.race_normals,
@@ -462,7 +459,7 @@ impl Registrar {
         Pose { r, t: reg.translation_cloud_from_canonical + reg.scale * (r * c), s: reg.scale * norm.scale }
     }
 
-    fn hypotheses(&self, x: &[P3], opts: &RegisterOptions) -> Vec<Pose> {
+    fn hypotheses(&self, x: &[P3], up: Option<Vector3<f64>>, yaws: usize) -> Vec<Pose> {
         // Axes and centre of the view's core: stray points (segmentation
         // leaks, flying pixels) would drag a plain centroid and tilt the axes.
         let (ax_o, mu_o) = principal_axes(&trimmed_core(x));
@@ -478,16 +475,15 @@ impl Registrar {
             }
             rots.push(r);
         }
-        match opts.up {
+        match up {
             Some(up) => {
                 // Upright at `yaws` yaws.
-                let up = Vector3::from(up).try_normalize(1e-9).unwrap_or_else(Vector3::z);
                 let align = Rotation3::rotation_between(&Vector3::z(), &up)
                     .unwrap_or_else(|| Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI));
-                for k in 0..opts.yaws {
+                for k in 0..yaws {
                     let yaw = Rotation3::from_axis_angle(
                         &nalgebra::Unit::new_normalize(up),
-                        k as f64 * std::f64::consts::TAU / opts.yaws as f64,
+                        k as f64 * std::f64::consts::TAU / yaws as f64,
                     );
                     rots.push(*(yaw * align).matrix());
                 }
@@ -621,20 +617,21 @@ impl YawSweep<'_> {
         let y_model = self.model.evaluate(&lead.latent);
         // Turn about the up line through the canonical frame's origin: the
         // category's main body axis (the built-in families are built so).
-        let centroid = self.origin;
-        let pivot = Vector3::from(lead.pose.apply(&[centroid.x, centroid.y, centroid.z]));
+        let origin = self.origin;
+        let pivot = Vector3::from(lead.pose.apply(&[origin.x, origin.y, origin.z]));
         let axis = nalgebra::Unit::new_normalize(up);
         let mut estep = new_estep(self.x);
         let mut post = Posteriors::default();
         let view = View { normals: self.normals, viewpoint: self.viewpoint };
         let mut weights = Vec::new();
-        let turned = |i: usize| -> Pose {
-            let r = Rotation3::from_axis_angle(&axis, i as f64 * step).into_inner() * lead.pose.r;
-            Pose { r, s: lead.pose.s, t: pivot - lead.pose.s * (r * centroid) }
+        // The lead turned by `steps` sweep steps (fractions allowed) about the pivot line.
+        let turned = |steps: f64| -> Pose {
+            let r = Rotation3::from_axis_angle(&axis, steps * step).into_inner() * lead.pose.r;
+            Pose { r, s: lead.pose.s, t: pivot - lead.pose.s * (r * origin) }
         };
         let scores: Vec<f64> = (0..k)
             .map(|i| {
-                let mut pose = turned(i);
+                let mut pose = turned(i as f64);
                 let mut y_world: Vec<P3> = y_model.iter().map(|y| pose.apply(y)).collect();
                 let w = view.weights(&pose, &y_world, &mut weights);
                 estep.run_weighted(&y_world, w, lead.sigma2, opts.outlier_weight, &mut post);
@@ -675,8 +672,7 @@ impl YawSweep<'_> {
         if mid.abs() < 0.25 {
             return (None, open);
         }
-        let r = Rotation3::from_axis_angle(&axis, mid * step).into_inner() * lead.pose.r;
-        (Some(Pose { r, s: lead.pose.s, t: pivot - lead.pose.s * (r * centroid) }), open)
+        (Some(turned(mid)), open)
     }
 }
 
@@ -830,6 +826,12 @@ fn check(cloud: &[Point3<f64>]) -> Result<(), RegisterError> {
         return Err(RegisterError::AbsurdScale { extent_m: extent, min_m, max_m });
     }
     Ok(())
+}
+
+/// The world's up as a unit vector in the cloud's frame, when known (a zero
+/// vector, which callers are told not to give, reads as z).
+fn up_direction(opts: &RegisterOptions) -> Option<Vector3<f64>> {
+    opts.up.map(|up| Vector3::from(up).try_normalize(1e-9).unwrap_or_else(Vector3::z))
 }
 
 /// Per-hypothesis diagnostics on stderr (GRASPD_REGISTER_TRACE set).
