@@ -1,0 +1,16 @@
+//! graspd's simulator: the hand and tools in MuJoCo 3.17.0 (through
+//! mujoco-rs 7.0.0), for the paper's tool-use tasks.
+//!
+//! The crate is separate from the engine (`graspd`) so that the daemon, the
+//! wire contract and the client build without MuJoCo. The C library is
+//! fetched by `scripts/fetch-mujoco.sh` into `third_party/mujoco/lib`;
+//! `.cargo/config.toml` points mujoco-rs at it and this crate's build script
+//! writes an rpath, so binaries and tests run without LD_LIBRARY_PATH.
+//!
+//! Units are SI, the world is z up, quaternions on the wire are (x, y, z, w)
+//! (MuJoCo's own arrays are (w, x, y, z); conversions happen at this crate's
+//! edges).
+
+pub mod engine;
+
+pub use engine::{load_mjcf, mujoco_version, SimError, MUJOCO_VERSION};
