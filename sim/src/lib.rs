@@ -12,5 +12,7 @@
 //! edges).
 
 pub mod engine;
+pub mod hand;
+pub mod mjcf;
 
 pub use engine::{load_mjcf, mujoco_version, SimError, MUJOCO_VERSION};
