@@ -14,5 +14,7 @@
 pub mod engine;
 pub mod hand;
 pub mod mjcf;
+pub mod scene;
+pub mod tool;
 
 pub use engine::{load_mjcf, mujoco_version, SimError, MUJOCO_VERSION};
