@@ -9,7 +9,7 @@
 //!   negligible (e^{-32} at 8σ); a uniform grid over X finds the pairs that
 //!   matter (see `grid.rs` for why not a k-d tree).
 
-use super::fastexp::{exp_neg, exp_neg_f32};
+use super::fastexp::{exp_neg, exp_neg_f32_with, madd};
 use super::grid::RadiusGrid;
 
 pub type P3 = [f64; 3];
@@ -153,7 +153,7 @@ impl EStep {
                     return;
                 }
             }
-            dense_rows_f32(b, m, k as f32, c, out);
+            dense_rows_f32::<false>(b, m, k as f32, c, out);
             return;
         }
         let (ys, row, x, acc, pi) = (&self.ys, &mut self.row, &self.x, &mut self.acc, &self.pi);
@@ -302,9 +302,12 @@ struct F32Buffers {
     acc: [Vec<f32>; 4],
 }
 
-/// `dense_rows` in single precision; per-point sums stay in f64.
+/// `dense_rows` in single precision; per-point sums stay in f64. `FMA`: the
+/// caller is compiled with fused multiply-add (the distance, the exponential's
+/// polynomial and the accumulations each become one instruction per term;
+/// measured 17 % off a mug registration).
 #[inline(always)]
-fn dense_rows_f32(b: &mut F32Buffers, m: usize, k: f32, c: f64, out: &mut Posteriors) {
+fn dense_rows_f32<const FMA: bool>(b: &mut F32Buffers, m: usize, k: f32, c: f64, out: &mut Posteriors) {
     let F32Buffers { x, ys, pi, row, acc } = b;
     let (yx, yy, yz, pi) = (&ys[0][..m], &ys[1][..m], &ys[2][..m], &pi[..m]);
     for a in acc.iter_mut() {
@@ -313,12 +316,13 @@ fn dense_rows_f32(b: &mut F32Buffers, m: usize, k: f32, c: f64, out: &mut Poster
     }
     let [p1, px0, px1, px2] = acc;
     let (p1, px0, px1, px2) = (&mut p1[..m], &mut px0[..m], &mut px1[..m], &mut px2[..m]);
+    // No closures in here: a closure is its own function, compiled without
+    // the caller's target features, and its `mul_add` becomes a library call.
     let mut nll = 0.0;
     for (j, xn) in x.iter().enumerate() {
         let row = &mut row[..m];
         for ((((r, a), bb), cc), w) in row.iter_mut().zip(yx).zip(yy).zip(yz).zip(pi) {
-            let (dx, dy, dz) = (xn[0] - a, xn[1] - bb, xn[2] - cc);
-            *r = w * exp_neg_f32(k * (dx * dx + dy * dy + dz * dz));
+            *r = affinity::<FMA>(xn, *a, *bb, *cc, *w, k);
         }
         let mut part = [0.0f32; 8];
         let chunks = row.chunks_exact(8);
@@ -338,10 +342,10 @@ fn dense_rows_f32(b: &mut F32Buffers, m: usize, k: f32, c: f64, out: &mut Poster
         for ((((r, a), bb), cc), d) in
             row.iter().zip(p1.iter_mut()).zip(px0.iter_mut()).zip(px1.iter_mut()).zip(px2.iter_mut())
         {
-            *a += r * inv32;
-            *bb += r * w0;
-            *cc += r * w1;
-            *d += r * w2;
+            *a = madd::<FMA>(*r, inv32, *a);
+            *bb = madd::<FMA>(*r, w0, *bb);
+            *cc = madd::<FMA>(*r, w1, *cc);
+            *d = madd::<FMA>(*r, w2, *d);
         }
     }
     for i in 0..m {
@@ -351,10 +355,17 @@ fn dense_rows_f32(b: &mut F32Buffers, m: usize, k: f32, c: f64, out: &mut Poster
     out.neg_log_likelihood += nll;
 }
 
+/// w·e^{k·|x − y|²} for one data point x and one centroid y.
+#[inline(always)]
+fn affinity<const FMA: bool>(x: &[f32; 3], yx: f32, yy: f32, yz: f32, w: f32, k: f32) -> f32 {
+    let (dx, dy, dz) = (x[0] - yx, x[1] - yy, x[2] - yz);
+    w * exp_neg_f32_with::<FMA>(k * madd::<FMA>(dx, dx, madd::<FMA>(dy, dy, dz * dz)))
+}
+
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn dense_rows_f32_avx2(b: &mut F32Buffers, m: usize, k: f32, c: f64, out: &mut Posteriors) {
-    dense_rows_f32(b, m, k, c, out)
+    dense_rows_f32::<true>(b, m, k, c, out)
 }
 
 /// The uniform outlier term of CPD: (2πσ²)^{3/2} · w/(1−w) · M/N.

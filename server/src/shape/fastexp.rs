@@ -49,15 +49,33 @@ pub fn exp_neg(x: f64) -> f64 {
 /// (measured: a registration with view weights ran 5× slower from that alone).
 #[inline(always)]
 pub fn exp_neg_f32(x: f32) -> f32 {
+    exp_neg_f32_with::<false>(x)
+}
+
+/// a·b + c, as one fused instruction when `FMA` (only for callers compiled
+/// with the `fma` target feature: elsewhere `mul_add` is a slow library call).
+#[inline(always)]
+pub fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
+    if FMA {
+        a.mul_add(b, c)
+    } else {
+        a * b + c
+    }
+}
+
+/// `exp_neg_f32` with its polynomial in fused multiply-adds when `FMA`.
+/// Degree 6 on |f| ≤ ln2/2: truncation error 1.2e-7, at f32's own rounding.
+#[inline(always)]
+pub fn exp_neg_f32_with<const FMA: bool>(x: f32) -> f32 {
     const MAGIC: f32 = 12582912.0; // 1.5·2²³
     let t = (if x < -60.0 { -60.0 } else { x }) * std::f32::consts::LOG2_E;
     let r = t + MAGIC;
     let n = r - MAGIC;
     let f = (t - n) * std::f32::consts::LN_2;
-    let p = 1.0
-        + f * (1.0
-            + f * (0.5
-                + f * (1.0 / 6.0 + f * (1.0 / 24.0 + f * (1.0 / 120.0 + f * (1.0 / 720.0 + f * (1.0 / 5040.0)))))));
+    let mut p = 1.0 / 720.0;
+    for c in [1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0, 1.0] {
+        p = madd::<FMA>(p, f, c);
+    }
     let ni = (r.to_bits() as i32).wrapping_sub(MAGIC.to_bits() as i32);
     let e = p * f32::from_bits(((ni + 127) as u32) << 23);
     if x < -60.0 {
@@ -87,6 +105,11 @@ mod tests {
             worst32 = worst32.max(((a - b) / b).abs());
         }
         assert!(worst32 < 1e-5, "worst f32 relative error {worst32}");
+        for i in 0..100_000 {
+            let x = -(i as f32) * 0.0006;
+            let (a, b) = (exp_neg_f32_with::<true>(x) as f64, (x as f64).exp());
+            assert!(((a - b) / b).abs() < 1e-5, "fused: e^{x} = {a}, not {b}");
+        }
         assert_eq!(exp_neg(-1e6), 0.0);
         assert_eq!(exp_neg_f32(-61.0), 0.0);
         // Just above the cut: a normal number, not a subnormal.
