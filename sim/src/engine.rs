@@ -24,6 +24,9 @@ pub enum SimError {
     Hand(#[from] graspd::hand::HandModelError),
     #[error("link `{link}`: inertial: {reason}")]
     Inertial { link: String, reason: String },
+    /// graspd's engine could not plan a grasp (demonstration, shape space, solver).
+    #[error("grasp planning: {reason}")]
+    Plan { reason: String },
     /// A tool mesh that cannot become a simulated body.
     #[error("tool: {reason}")]
     Tool { reason: String },

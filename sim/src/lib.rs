@@ -12,8 +12,10 @@
 //! edges).
 
 pub mod engine;
+pub mod episode;
 pub mod hand;
 pub mod mjcf;
+pub mod plan;
 pub mod scene;
 pub mod tool;
 

@@ -74,7 +74,16 @@ impl SceneSpec<'_> {
             None => None,
         };
         let tools = self.tools.iter().map(|(t, _)| ToolIndex::new(&model, t)).collect::<Result<_, _>>()?;
-        Ok(Scene { model, hand, tools })
+        let table = match &self.table {
+            Some(t) => Some((
+                model
+                    .name_to_id(MjtObjBase::mjOBJ_GEOM, "table")
+                    .ok_or_else(|| SimError::MissingElement { kind: "geom", name: "table".into() })?,
+                t.top_z,
+            )),
+            None => None,
+        };
+        Ok(Scene { model, hand, tools, table })
     }
 }
 
@@ -85,6 +94,20 @@ pub struct Scene {
     pub hand: Option<HandIndex>,
     /// In the order of [`SceneSpec::tools`].
     pub tools: Vec<ToolIndex>,
+    /// The table's geom id and top height.
+    pub table: Option<(usize, f64)>,
+}
+
+impl Scene {
+    /// Whether any contact of the current state is between the bodies `a`
+    /// and `b` (either order). Body 0 is the world, which owns the table.
+    pub fn in_contact<M: ModelType>(&self, data: &MjData<M>, a: usize, b: usize) -> bool {
+        let body = |g: i32| usize::try_from(g).map(|g| self.model.geom_bodyid()[g] as usize).ok();
+        data.contact().iter().any(|c| match (body(c.geom[0]), body(c.geom[1])) {
+            (Some(x), Some(y)) => (x == a && y == b) || (x == b && y == a),
+            _ => false,
+        })
+    }
 }
 
 /// Where a tool lives in a compiled model.
@@ -95,8 +118,8 @@ pub struct ToolIndex {
     pub qpos: usize,
     /// qvel address of its free joint.
     pub dof: usize,
-    /// The lowest mesh point in the tool frame (copied from the tool).
-    pub lowest_z: f64,
+    /// Extreme points of the tool, tool frame ([`ToolBody::support_points`]).
+    pub support_points: Vec<nalgebra::Point3<f64>>,
 }
 
 impl ToolIndex {
@@ -110,7 +133,7 @@ impl ToolIndex {
             body,
             qpos: model.jnt_qposadr()[joint] as usize,
             dof: model.jnt_dofadr()[joint] as usize,
-            lowest_z: tool.lowest_z,
+            support_points: tool.support_points(),
         })
     }
 
@@ -123,6 +146,12 @@ impl ToolIndex {
     pub fn set_pose<M: ModelType>(&self, data: &mut MjData<M>, pose: &Isometry3<f64>) {
         data.qpos_mut()[self.qpos..self.qpos + 7].copy_from_slice(&pose_to_qpos(pose));
         data.qvel_mut()[self.dof..self.dof + 6].fill(0.0);
+    }
+
+    /// Height of the tool's lowest point in the world.
+    pub fn lowest_z<M: ModelType>(&self, data: &MjData<M>) -> f64 {
+        let pose = self.pose(data);
+        self.support_points.iter().map(|p| (pose * p).z).fold(f64::INFINITY, f64::min)
     }
 
     /// Linear and angular speed of the tool (m/s, rad/s).
@@ -178,6 +207,8 @@ mod tests {
         assert!(up.z > (2.0f64).to_radians().cos(), "mug tilted {:.1}° from upright", up.z.acos().to_degrees());
         // The base (the tool frame's origin, its lowest plane) sits on the table top.
         assert!(pose.translation.z.abs() < 1.5e-3, "base at z = {} m", pose.translation.z);
+        assert!(tool.lowest_z(&data).abs() < 1.5e-3, "lowest point at z = {} m", tool.lowest_z(&data));
+        assert!(scene.in_contact(&data, tool.body, 0), "the mug does not touch the table (world body)");
         assert!(fell_by > 0.045, "the mug never reached the table ({fell_by} m)");
         let (v, w) = tool.speed(&data);
         assert!(v < 1e-3 && w < 1e-2, "still moving: {v} m/s, {w} rad/s");

@@ -186,8 +186,6 @@ pub struct ToolBody {
     pub mass: MassProperties,
     pub hulls: Vec<Hull>,
     pub material: ToolMaterial,
-    /// The lowest mesh point, in the tool frame (resting-height checks).
-    pub lowest_z: f64,
 }
 
 impl ToolBody {
@@ -200,8 +198,13 @@ impl ToolBody {
     ) -> Result<Self, SimError> {
         let mass = mass_properties(mesh, material.density)?;
         let hulls = convex_decomposition(mesh, decomposition)?;
-        let lowest_z = mesh.vertices.iter().map(|p| p.z).fold(f64::INFINITY, f64::min);
-        Ok(Self { name: name.to_owned(), mass, hulls, material, lowest_z })
+        Ok(Self { name: name.to_owned(), mass, hulls, material })
+    }
+
+    /// The hulls' vertices, tool frame: mesh vertices that include every
+    /// extreme point of the tool (its lowest point in any pose is one of them).
+    pub fn support_points(&self) -> Vec<Point3<f64>> {
+        self.hulls.iter().flat_map(|h| h.vertices.iter().copied()).collect()
     }
 
     /// `<mesh>` assets, one per hull.
