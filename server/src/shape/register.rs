@@ -697,7 +697,7 @@ fn new_estep(x: &[P3]) -> EStep {
     estep.single_precision = true;
     // Registration sets are small (≤ 400 a side): the f32 dense sums beat
     // the grid until the cutoff ball is a small part of the view.
-    estep.truncate_below = 0.2;
+    estep.truncate_below = 0.3;
     estep
 }
 
