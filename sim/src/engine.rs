@@ -27,6 +27,9 @@ pub enum SimError {
     /// graspd's engine could not plan a grasp (demonstration, shape space, solver).
     #[error("grasp planning: {reason}")]
     Plan { reason: String },
+    /// A setting out of its range.
+    #[error("invalid setting: {reason}")]
+    Config { reason: String },
     /// A tool mesh that cannot become a simulated body.
     #[error("tool: {reason}")]
     Tool { reason: String },

@@ -123,6 +123,100 @@ pub fn squeezed(hand: &HandModel, grasp: &Grasp, squeeze_rad: f64) -> Vec<f64> {
     q
 }
 
+/// The script as a function of time: wrist and joint targets for any
+/// instant of the episode (no state, so many environments can share one).
+#[derive(Clone, Debug)]
+pub struct LiftController {
+    pre_wrist: Isometry3<f64>,
+    grasp_wrist: Isometry3<f64>,
+    lifted_wrist: Isometry3<f64>,
+    q_pre: Vec<f64>,
+    q_squeeze: Vec<f64>,
+    /// End times of approach, close, settle, lift, hold.
+    ends: [f64; 5],
+    script: LiftScript,
+}
+
+impl LiftController {
+    pub fn new(hand: &HandModel, plan: &GraspPlan, script: &LiftScript) -> Self {
+        let mut ends = [script.approach_s, script.close_s, script.settle_s, script.lift_s, script.hold_s];
+        for k in 1..ends.len() {
+            ends[k] += ends[k - 1];
+        }
+        let grasp_wrist = plan.grasp.wrist_pose_world;
+        Self {
+            pre_wrist: plan.pregrasp.wrist_pose_world,
+            grasp_wrist,
+            lifted_wrist: Translation3::new(0.0, 0.0, script.lift_m) * grasp_wrist,
+            q_pre: plan.pregrasp.actuated.clone(),
+            q_squeeze: squeezed(hand, &plan.grasp, script.squeeze_rad),
+            ends,
+            script: script.clone(),
+        }
+    }
+
+    /// Length of the whole script, seconds.
+    pub fn duration(&self) -> f64 {
+        self.ends[4]
+    }
+
+    /// End of the settle phase (the hand closed) and of the lift, seconds.
+    pub fn closed_at(&self) -> f64 {
+        self.ends[2]
+    }
+    pub fn lifted_at(&self) -> f64 {
+        self.ends[3]
+    }
+
+    /// Wrist target and actuated joint targets (written into `q`) at time `t`.
+    pub fn targets(&self, t: f64, q: &mut [f64]) -> Isometry3<f64> {
+        let [approach, close, settle, lift, _] = self.ends;
+        let sc = &self.script;
+        if t <= approach {
+            q.copy_from_slice(&self.q_pre);
+            lerp_pose(&self.pre_wrist, &self.grasp_wrist, ease(t / sc.approach_s))
+        } else if t <= close {
+            let s = ease((t - approach) / sc.close_s);
+            for ((q, a), b) in q.iter_mut().zip(&self.q_pre).zip(&self.q_squeeze) {
+                *q = a + s * (b - a);
+            }
+            self.grasp_wrist
+        } else if t <= settle {
+            q.copy_from_slice(&self.q_squeeze);
+            self.grasp_wrist
+        } else if t <= lift {
+            q.copy_from_slice(&self.q_squeeze);
+            lerp_pose(&self.grasp_wrist, &self.lifted_wrist, ease((t - settle) / sc.lift_s))
+        } else {
+            q.copy_from_slice(&self.q_squeeze);
+            self.lifted_wrist
+        }
+    }
+}
+
+/// Puts the scene at the episode's start: the tool at `tool_pose`, the hand
+/// at the plan's pre-grasp, everything at rest.
+pub fn reset_to_pregrasp<M: ModelType>(
+    scene: &Scene,
+    data: &mut MjData<M>,
+    hand_model: &HandModel,
+    plan: &GraspPlan,
+    tool_pose: &Isometry3<f64>,
+) -> Result<(), SimError> {
+    let hand = scene.hand.as_ref().ok_or(SimError::MissingElement { kind: "hand", name: "hand".into() })?;
+    let tool = scene.tools.first().ok_or(SimError::MissingElement { kind: "tool", name: "tool".into() })?;
+    data.reset();
+    tool.set_pose(data, tool_pose);
+    hand.set_configuration(data, hand_model, &plan.pregrasp.wrist_pose_world, &plan.pregrasp.actuated);
+    data.forward();
+    Ok(())
+}
+
+/// Physics steps per control step of a scene at `control_hz`.
+pub fn substeps(scene: &Scene, control_hz: f64) -> usize {
+    (1.0 / (control_hz * scene.model.opt().timestep)).round().max(1.0) as usize
+}
+
 /// Runs the script from the plan's pre-grasp. `data` is reset first; the
 /// tool starts at `tool_pose`, the plan must already be carried to it.
 pub fn run_lift<M: ModelType>(
@@ -134,55 +228,25 @@ pub fn run_lift<M: ModelType>(
     script: &LiftScript,
     control_hz: f64,
 ) -> Result<LiftOutcome, SimError> {
+    reset_to_pregrasp(scene, data, hand_model, plan, tool_pose)?;
     let hand = scene.hand.as_ref().ok_or(SimError::MissingElement { kind: "hand", name: "hand".into() })?;
     let tool = scene.tools.first().ok_or(SimError::MissingElement { kind: "tool", name: "tool".into() })?;
-    let substeps = (1.0 / (control_hz * scene.model.opt().timestep)).round().max(1.0) as usize;
+    let substeps = substeps(scene, control_hz);
     // Diagnostics on stderr every 0.1 s, as graspd's GRASPD_EVAL_TRACE.
     let trace = std::env::var_os("GRASPD_SIM_TRACE").is_some_and(|v| v != "0");
-    data.reset();
-    tool.set_pose(data, tool_pose);
-    hand.set_configuration(data, hand_model, &plan.pregrasp.wrist_pose_world, &plan.pregrasp.actuated);
-    data.forward();
-
     let table_z = scene.table.map_or(0.0, |(_, z)| z);
     let start_up = tool.pose(data).rotation * Vector3::z();
-    let pre_wrist = plan.pregrasp.wrist_pose_world;
-    let grasp_wrist = plan.grasp.wrist_pose_world;
-    let lifted_wrist = Translation3::new(0.0, 0.0, script.lift_m) * grasp_wrist;
-    let q_pre = plan.pregrasp.actuated.clone();
-    let q_squeeze = squeezed(hand_model, &plan.grasp, script.squeeze_rad);
-
-    let phases = [script.approach_s, script.close_s, script.settle_s, script.lift_s, script.hold_s];
-    let ends: Vec<f64> = phases
-        .iter()
-        .scan(0.0, |t, d| {
-            *t += d;
-            Some(*t)
-        })
-        .collect();
-    let total = ends[4];
-    let n_control = (total * control_hz).round() as usize;
+    let controller = LiftController::new(hand_model, plan, script);
+    let n_control = (controller.duration() * control_hz).round() as usize;
     let mut clearance_after_lift = f64::NAN;
     let mut palm_from_tool_at_hold: Option<Isometry3<f64>> = None;
     let mut physics_time = 0.0;
-    let mut q_target = q_pre.clone();
+    let mut q_target = plan.pregrasp.actuated.clone();
     let mut touching = Vec::new();
     for k in 0..n_control {
-        // Targets for the control interval that starts at t.
+        // Targets for the control interval that ends at t.
         let t = (k + 1) as f64 / control_hz;
-        let (wrist, phase_q) = if t <= ends[0] {
-            (lerp_pose(&pre_wrist, &grasp_wrist, ease(t / script.approach_s)), q_pre.clone())
-        } else if t <= ends[1] {
-            let s = ease((t - ends[0]) / script.close_s);
-            (grasp_wrist, q_pre.iter().zip(&q_squeeze).map(|(a, b)| a + s * (b - a)).collect())
-        } else if t <= ends[2] {
-            (grasp_wrist, q_squeeze.clone())
-        } else if t <= ends[3] {
-            (lerp_pose(&grasp_wrist, &lifted_wrist, ease((t - ends[2]) / script.lift_s)), q_squeeze.clone())
-        } else {
-            (lifted_wrist, q_squeeze.clone())
-        };
-        q_target.clone_from(&phase_q);
+        let wrist = controller.targets(t, &mut q_target);
         hand.set_wrist_target(data, &wrist);
         hand.set_joint_targets(data, &q_target);
         let t0 = Instant::now();
@@ -206,10 +270,10 @@ pub fn run_lift<M: ModelType>(
                 touching_links(scene, data, hand_model, tool.body).join(" ")
             );
         }
-        if touching.is_empty() && t > ends[2] - 0.5 / control_hz {
+        if touching.is_empty() && t > controller.closed_at() - 0.5 / control_hz {
             touching = touching_links(scene, data, hand_model, tool.body);
         }
-        if palm_from_tool_at_hold.is_none() && t > ends[3] - 0.5 / control_hz {
+        if palm_from_tool_at_hold.is_none() && t > controller.lifted_at() - 0.5 / control_hz {
             clearance_after_lift = tool.lowest_z(data) - table_z;
             palm_from_tool_at_hold = Some(hand.wrist_pose(data).inverse() * tool.pose(data));
         }
@@ -308,7 +372,7 @@ pub fn lift_instance(
         hand: Some((asset, setup.hand.clone(), plan.pregrasp.wrist_pose_world)),
     };
     let scene = spec.build()?;
-    let mut data = MjData::new(&scene.model);
+    let mut data = MjData::new(scene.model.clone());
     let outcome =
         run_lift(&scene, &mut data, asset.model(), &plan, &tool_pose, &setup.script, setup.physics.control_hz)?;
     Ok((plan, outcome))
@@ -365,7 +429,7 @@ mod tests {
             hand: Some((&asset, setup.hand.clone(), plan.pregrasp.wrist_pose_world)),
         };
         let scene = spec.build().unwrap();
-        let mut data = MjData::new(&scene.model);
+        let mut data = MjData::new(scene.model.clone());
         let script = LiftScript { squeeze_rad: 0.0, ..LiftScript::default() };
         let out = run_lift(&scene, &mut data, hand, &plan, &Isometry3::identity(), &script, 30.0).unwrap();
         assert!(!out.held, "{out:?}");

@@ -18,5 +18,6 @@ pub mod mjcf;
 pub mod plan;
 pub mod scene;
 pub mod tool;
+pub mod vecenv;
 
 pub use engine::{load_mjcf, mujoco_version, SimError, MUJOCO_VERSION};

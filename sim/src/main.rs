@@ -19,6 +19,29 @@ enum Command {
     },
     /// Scripted grasp-and-lift episodes: pre-grasp, close, lift 10 cm, hold 2 s.
     Lift(LiftArgs),
+    /// Throughput of N mug-lift environments stepped in parallel.
+    Bench(BenchArgs),
+}
+
+#[derive(clap::Args)]
+struct BenchArgs {
+    #[arg(long, default_value_t = 16)]
+    envs: usize,
+    /// Wall-clock seconds to measure (after a warm-up that staggers the episodes).
+    #[arg(long, default_value_t = 30.0)]
+    seconds: f64,
+    /// Worker threads (default: the cores available to this process).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// `scripted` (approach, close, lift, hold; contact-rich) or `hold` (the
+    /// pre-grasp's targets held: the zero action).
+    #[arg(long, default_value = "scripted")]
+    actions: String,
+    /// Physics steps per 30 Hz control step.
+    #[arg(long)]
+    substeps: Option<usize>,
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(clap::Args)]
@@ -70,6 +93,7 @@ fn main() -> ExitCode {
             Ok(())
         }
         Command::Lift(a) => run_lift(a),
+        Command::Bench(a) => run_bench(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -159,6 +183,95 @@ fn run_lift(a: LiftArgs) -> Result<(), Box<dyn std::error::Error>> {
         );
     } else {
         println!("held {held} of {} ({upright} upright)", rows.len());
+    }
+    Ok(())
+}
+
+fn run_bench(a: BenchArgs) -> Result<(), Box<dyn std::error::Error>> {
+    use graspd::tools::{self, Category};
+    use graspd_sim::episode::LiftSetup;
+    use graspd_sim::scene::{SceneSpec, Table};
+    use graspd_sim::tool::{ToolBody, ToolMaterial};
+    use graspd_sim::vecenv::{ActionStream, VecLift};
+    use nalgebra::Isometry3;
+    use std::time::Instant;
+
+    let actions = match a.actions.as_str() {
+        "scripted" => ActionStream::Scripted,
+        "hold" => ActionStream::Hold,
+        other => return Err(format!("--actions {other}: expected `scripted` or `hold`").into()),
+    };
+    if !(a.seconds.is_finite() && a.seconds > 0.0) {
+        return Err(format!("--seconds {} must be positive", a.seconds).into());
+    }
+    let threads = a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let mut setup = LiftSetup::default();
+    if let Some(n) = a.substeps {
+        setup.physics.substeps = n.max(1);
+    }
+    let asset = graspd_sim::hand::HandAsset::default_sih()?;
+    let hand = asset.model();
+    let mug = tools::instance(Category::Mug, "mug_canonical")?;
+    let plan = graspd_sim::plan::GraspPlanner::new(hand, Category::Mug, 0)?.plan(&mug)?;
+    let tool = ToolBody::from_mesh("mug", &mug.mesh, ToolMaterial::for_category(Category::Mug), &setup.decomposition)?;
+    let spec = SceneSpec {
+        name: "bench_mug".into(),
+        physics: setup.physics.clone(),
+        table: Some(Table::default()),
+        tools: vec![(&tool, Isometry3::identity())],
+        hand: Some((&asset, setup.hand.clone(), plan.pregrasp.wrist_pose_world)),
+    };
+    let mut envs = VecLift::new(
+        spec.build()?,
+        hand,
+        plan,
+        Isometry3::identity(),
+        &setup.script,
+        actions,
+        setup.physics.control_hz,
+        a.envs,
+        threads,
+    )?;
+    tracing::info!(envs = a.envs, threads, "stepping for {} s", a.seconds);
+    let t0 = Instant::now();
+    let mut batches = 0u64;
+    while t0.elapsed().as_secs_f64() < a.seconds {
+        envs.step();
+        batches += 1;
+    }
+    let wall = t0.elapsed().as_secs_f64();
+    let (physics_s, episodes) = envs.physics_stats();
+    let control_steps = batches * envs.len() as u64;
+    let physics_steps = control_steps * envs.substeps() as u64;
+    let v = serde_json::json!({
+        "scene": "mug_canonical lift",
+        "actions": a.actions,
+        "envs": envs.len(),
+        "threads": threads,
+        "substeps": envs.substeps(),
+        "control_hz": setup.physics.control_hz,
+        "seconds": wall,
+        "control_steps": control_steps,
+        "control_steps_per_s": control_steps as f64 / wall,
+        "physics_steps_per_s": physics_steps as f64 / wall,
+        // Time inside MuJoCo's step per physics step, each thread's own time (not divided by threads).
+        "physics_us_per_step": 1e6 * physics_s / physics_steps.max(1) as f64,
+        "episodes_completed": episodes,
+        "simulated_seconds_per_s": control_steps as f64 / setup.physics.control_hz / wall,
+    });
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!(
+            "{} envs on {} threads, {}: {:.0} control steps/s ({} physics steps each), {:.1} µs per physics step, {:.0}× real time",
+            envs.len(),
+            threads,
+            a.actions,
+            v["control_steps_per_s"].as_f64().unwrap_or(0.0),
+            envs.substeps(),
+            v["physics_us_per_step"].as_f64().unwrap_or(0.0),
+            v["simulated_seconds_per_s"].as_f64().unwrap_or(0.0)
+        );
     }
     Ok(())
 }

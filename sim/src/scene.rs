@@ -1,6 +1,8 @@
 //! Scenes: a table, tools and (optionally) the hand, assembled into one MJCF
 //! document and compiled, with the indices the controllers need.
 
+use std::sync::Arc;
+
 use mujoco_rs::prelude::{MjData, MjModel, MjtObjBase};
 use mujoco_rs::wrappers::mj_model::traits::ModelType;
 use nalgebra::{Isometry3, Vector3};
@@ -83,14 +85,15 @@ impl SceneSpec<'_> {
             )),
             None => None,
         };
-        Ok(Scene { model, hand, tools, table })
+        Ok(Scene { model: Arc::new(model), hand, tools, table })
     }
 }
 
-/// A compiled scene.
+/// A compiled scene. The model is shared: every environment's `MjData`
+/// holds a reference-counted handle to it.
 #[derive(Debug)]
 pub struct Scene {
-    pub model: MjModel,
+    pub model: Arc<MjModel>,
     pub hand: Option<HandIndex>,
     /// In the order of [`SceneSpec::tools`].
     pub tools: Vec<ToolIndex>,
@@ -194,7 +197,7 @@ mod tests {
         };
         let scene = spec.build().unwrap();
         let tool = &scene.tools[0];
-        let mut data = MjData::new(&scene.model);
+        let mut data = MjData::new(scene.model.clone());
         data.forward();
         let steps = (2.0 / scene.model.opt().timestep).round() as usize;
         let mut fell_by = 0.0f64;

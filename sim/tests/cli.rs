@@ -1,0 +1,49 @@
+//! The `sim` binary end to end: its JSON is what scripts read.
+
+use std::process::Command;
+
+fn sim(args: &[&str]) -> serde_json::Value {
+    let out = Command::new(env!("CARGO_BIN_EXE_sim")).args(args).output().expect("sim runs");
+    assert!(out.status.success(), "sim {args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("sim {args:?} printed no JSON ({e})"))
+}
+
+#[test]
+fn info_names_the_linked_mujoco() {
+    let v = sim(&["info", "--json"]);
+    assert_eq!(v["mujoco_version"], "3.17.0");
+}
+
+#[test]
+fn bench_reports_its_throughput() {
+    let v = sim(&["bench", "--envs", "3", "--seconds", "0.5", "--threads", "2", "--json"]);
+    assert_eq!(v["envs"], 3);
+    assert_eq!(v["substeps"], 4);
+    let rate = v["control_steps_per_s"].as_f64().unwrap();
+    let us = v["physics_us_per_step"].as_f64().unwrap();
+    assert!(rate > 0.0 && us > 0.0, "{v}");
+    // Steps counted and time measured agree: n steps × 4 substeps × µs each
+    // cannot exceed the threads' wall time.
+    let physics_s = v["control_steps"].as_f64().unwrap() * 4.0 * us * 1e-6;
+    assert!(physics_s <= 2.0 * v["seconds"].as_f64().unwrap() * 1.05, "{v}");
+}
+
+#[test]
+fn bench_refuses_bad_arguments_with_a_message() {
+    let out = Command::new(env!("CARGO_BIN_EXE_sim")).args(["bench", "--actions", "dance"]).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("scripted"));
+    let out =
+        Command::new(env!("CARGO_BIN_EXE_sim")).args(["bench", "--envs", "0", "--seconds", "0.1"]).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("environment"));
+}
+
+#[test]
+fn lift_json_lists_each_episode() {
+    let v = sim(&["lift", "--category", "mug", "--instances", "canonical", "--json"]);
+    assert_eq!(v["episodes"], 1);
+    let r = &v["results"][0];
+    assert_eq!(r["instance"], "mug_canonical");
+    assert_eq!(r["outcome"]["held"], true);
+}
