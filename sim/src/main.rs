@@ -21,6 +21,19 @@ enum Command {
     Lift(LiftArgs),
     /// Throughput of N mug-lift environments stepped in parallel.
     Bench(BenchArgs),
+    /// Writes a lift scene's MJCF (table, tool, hand at the pre-grasp), for MuJoCo's own tools.
+    Scene(SceneArgs),
+}
+
+#[derive(clap::Args)]
+struct SceneArgs {
+    #[arg(long, default_value = "mug")]
+    category: String,
+    #[arg(long, default_value = "mug_canonical")]
+    instance: String,
+    /// Output MJCF file (self-contained: meshes inline).
+    #[arg(long)]
+    out: std::path::PathBuf,
 }
 
 #[derive(clap::Args)]
@@ -94,6 +107,7 @@ fn main() -> ExitCode {
         }
         Command::Lift(a) => run_lift(a),
         Command::Bench(a) => run_bench(a),
+        Command::Scene(a) => run_scene(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -273,5 +287,38 @@ fn run_bench(a: BenchArgs) -> Result<(), Box<dyn std::error::Error>> {
             v["simulated_seconds_per_s"].as_f64().unwrap_or(0.0)
         );
     }
+    Ok(())
+}
+
+fn run_scene(a: SceneArgs) -> Result<(), Box<dyn std::error::Error>> {
+    use graspd::tools::{self, Category};
+    use graspd_sim::episode::LiftSetup;
+    use graspd_sim::scene::{SceneSpec, Table};
+    use graspd_sim::tool::{ToolBody, ToolMaterial};
+    use nalgebra::Isometry3;
+
+    let category: Category = a.category.parse()?;
+    let instance = tools::instance(category, &a.instance)?;
+    let asset = graspd_sim::hand::HandAsset::default_sih()?;
+    let plan = graspd_sim::plan::GraspPlanner::new(asset.model(), category, 0)?.plan(&instance)?;
+    let setup = LiftSetup::default();
+    let tool = ToolBody::from_mesh(
+        &instance.name,
+        &instance.mesh,
+        ToolMaterial::for_category(category),
+        &setup.decomposition,
+    )?;
+    let spec = SceneSpec {
+        name: format!("lift_{}", instance.name),
+        physics: setup.physics.clone(),
+        table: Some(Table::default()),
+        tools: vec![(&tool, Isometry3::identity())],
+        hand: Some((&asset, setup.hand.clone(), plan.pregrasp.wrist_pose_world)),
+    };
+    let xml = spec.to_mjcf();
+    // Compile it before writing, so a written file is a valid model.
+    spec.build()?;
+    std::fs::write(&a.out, xml).map_err(|e| format!("cannot write {}: {e}", a.out.display()))?;
+    println!("{}: {} hulls, {:.3} kg", a.out.display(), tool.hulls.len(), tool.mass.mass);
     Ok(())
 }

@@ -3,7 +3,7 @@
 //!
 //! Scenes are generated as text (not through MuJoCo's model-editing API) so
 //! that a scene can be written to a file, read, and loaded by MuJoCo's own
-//! tools when something looks wrong (`sim scene --out`).
+//! tools when something looks wrong (`sim scene --out FILE.xml`).
 
 use std::fmt::Write as _;
 
