@@ -89,7 +89,7 @@ pub struct LiftOutcome {
 }
 
 /// Linear interpolation of poses (translation linear, rotation slerp).
-fn lerp_pose(a: &Isometry3<f64>, b: &Isometry3<f64>, s: f64) -> Isometry3<f64> {
+pub(crate) fn lerp_pose(a: &Isometry3<f64>, b: &Isometry3<f64>, s: f64) -> Isometry3<f64> {
     let s = s.clamp(0.0, 1.0);
     Isometry3::from_parts(
         Translation3::from(a.translation.vector.lerp(&b.translation.vector, s)),
@@ -98,7 +98,7 @@ fn lerp_pose(a: &Isometry3<f64>, b: &Isometry3<f64>, s: f64) -> Isometry3<f64> {
 }
 
 /// Smooth 0 → 1 ramp (zero velocity at both ends) over [0, 1].
-fn ease(s: f64) -> f64 {
+pub(crate) fn ease(s: f64) -> f64 {
     let s = s.clamp(0.0, 1.0);
     s * s * (3.0 - 2.0 * s)
 }
@@ -158,6 +158,11 @@ impl LiftController {
     /// Length of the whole script, seconds.
     pub fn duration(&self) -> f64 {
         self.ends[4]
+    }
+
+    /// The wrist command once lifted (the lift and hold phases' end).
+    pub fn lifted_wrist(&self) -> Isometry3<f64> {
+        self.lifted_wrist
     }
 
     /// End of the settle phase (the hand closed) and of the lift, seconds.

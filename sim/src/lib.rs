@@ -15,8 +15,10 @@ pub mod engine;
 pub mod episode;
 pub mod hand;
 pub mod mjcf;
+pub mod place;
 pub mod plan;
 pub mod scene;
+pub mod task;
 pub mod tool;
 pub mod vecenv;
 

@@ -19,6 +19,8 @@ enum Command {
     },
     /// Scripted grasp-and-lift episodes: pre-grasp, close, lift 10 cm, hold 2 s.
     Lift(LiftArgs),
+    /// Place-mug episodes with the scripted controller (pre-grasp, close, lift, move to the goal, place, release).
+    Place(PlaceArgs),
     /// Throughput of N mug-lift environments stepped in parallel.
     Bench(BenchArgs),
     /// Writes a lift scene's MJCF (table, tool, hand at the pre-grasp), for MuJoCo's own tools.
@@ -53,6 +55,26 @@ struct BenchArgs {
     /// Physics steps per 30 Hz control step.
     #[arg(long)]
     substeps: Option<usize>,
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(clap::Args)]
+struct PlaceArgs {
+    #[arg(long, default_value = "mug")]
+    category: String,
+    /// `canonical`, `train`, `all` (canonical and train) or one instance name.
+    #[arg(long, default_value = "all")]
+    instances: String,
+    /// Episodes per instance (random start and goal, seeds `seed`, `seed + 1`, ...).
+    #[arg(long, default_value_t = 5)]
+    episodes: usize,
+    /// First episode seed (also the grasp solver's seed).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// MuJoCo no-slip solver iterations (0: off).
+    #[arg(long)]
+    noslip_iterations: Option<usize>,
     #[arg(long)]
     json: bool,
 }
@@ -106,6 +128,7 @@ fn main() -> ExitCode {
             Ok(())
         }
         Command::Lift(a) => run_lift(a),
+        Command::Place(a) => run_place(a),
         Command::Bench(a) => run_bench(a),
         Command::Scene(a) => run_scene(a),
     };
@@ -118,12 +141,14 @@ fn main() -> ExitCode {
     }
 }
 
-fn run_lift(a: LiftArgs) -> Result<(), Box<dyn std::error::Error>> {
-    use graspd::tools::{self, Category, Split};
-    use graspd_sim::episode::{lift_instance, LiftSetup};
-    let category: Category = a.category.parse()?;
-    let family = tools::family(category)?;
-    let chosen: Vec<&tools::Instance> = match a.instances.as_str() {
+/// The instances an `--instances` argument names.
+fn choose_instances<'a>(
+    family: &'a [graspd::tools::Instance],
+    category: graspd::tools::Category,
+    which: &str,
+) -> Result<Vec<&'a graspd::tools::Instance>, Box<dyn std::error::Error>> {
+    use graspd::tools::Split;
+    Ok(match which {
         "canonical" => family.iter().filter(|i| i.split == Split::Canonical).collect(),
         "train" => family.iter().filter(|i| i.split == Split::Train).collect(),
         "all" => family.iter().filter(|i| i.split != Split::Test).collect(),
@@ -134,7 +159,80 @@ fn run_lift(a: LiftArgs) -> Result<(), Box<dyn std::error::Error>> {
             }
             found
         }
-    };
+    })
+}
+
+fn run_place(a: PlaceArgs) -> Result<(), Box<dyn std::error::Error>> {
+    use graspd::tools::{self, Category};
+    use graspd_sim::place::{place_instance, PlaceSetup};
+    let category: Category = a.category.parse()?;
+    if category != Category::Mug {
+        return Err(format!("place is the mug task; {category} has its own task (not built yet)").into());
+    }
+    let family = tools::family(category)?;
+    let chosen = choose_instances(&family, category, &a.instances)?;
+    let asset = graspd_sim::hand::HandAsset::default_sih()?;
+    let mut planner = graspd_sim::plan::GraspPlanner::new(asset.model(), category, a.seed)?;
+    let mut setup = PlaceSetup::default();
+    if let Some(n) = a.noslip_iterations {
+        setup.base.physics.noslip_iterations = n;
+    }
+    let mut rows = Vec::new();
+    let (mut successes, mut total) = (0usize, 0usize);
+    for inst in chosen {
+        let (plan, outs) = place_instance(&asset, &mut planner, inst, &setup, a.seed, a.episodes)?;
+        let ok = outs.iter().filter(|o| o.success).count();
+        successes += ok;
+        total += outs.len();
+        if !a.json {
+            for o in &outs {
+                println!(
+                    "{:<18} seed {:<4} success {:<5} d {:6.1} mm  θ {:5.3} rad  first reached {:>6}  lift clear {:6.1} mm  return {:8.1}{}",
+                    inst.name,
+                    o.seed,
+                    o.success,
+                    1e3 * o.final_distance_m,
+                    o.final_angle_rad,
+                    o.first_reached_s.map_or("-".to_owned(), |t| format!("{t:.2} s")),
+                    1e3 * o.clearance_after_lift_m,
+                    o.episode_return,
+                    if o.warnings.is_empty() { String::new() } else { format!("  warnings: {}", o.warnings.join(", ")) }
+                );
+            }
+        }
+        rows.push(serde_json::json!({
+            "instance": inst.name,
+            "split": inst.split.name(),
+            "grasp_source": plan.source,
+            "successes": ok,
+            "episodes": outs,
+        }));
+    }
+    if a.json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "category": category.name(),
+                "task": "place_mug",
+                "ranges": setup.ranges,
+                "episodes": total,
+                "successes": successes,
+                "success_rate": successes as f64 / total.max(1) as f64,
+                "results": rows,
+            }))?
+        );
+    } else {
+        println!("success {successes} of {total}");
+    }
+    Ok(())
+}
+
+fn run_lift(a: LiftArgs) -> Result<(), Box<dyn std::error::Error>> {
+    use graspd::tools::{self, Category};
+    use graspd_sim::episode::{lift_instance, LiftSetup};
+    let category: Category = a.category.parse()?;
+    let family = tools::family(category)?;
+    let chosen = choose_instances(&family, category, &a.instances)?;
     let asset = graspd_sim::hand::HandAsset::default_sih()?;
     let mut planner = graspd_sim::plan::GraspPlanner::new(asset.model(), category, a.seed)?;
     let mut setup = LiftSetup::default();

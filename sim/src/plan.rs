@@ -19,7 +19,7 @@ use graspd::grasp::{pregrasp, Demonstration, Grasp, GraspSolver, PreGraspOptions
 use graspd::hand::HandModel;
 use graspd::shape::{builtin, ShapeSpace};
 use graspd::tools::{Category, Instance, Split};
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Point3};
 
 use crate::engine::SimError;
 
@@ -39,6 +39,12 @@ pub struct GraspPlan {
     pub source: &'static str,
     /// Paper Table I metric of the solved grasp (0 for the demonstration itself).
     pub task_space_distance_cm: f64,
+    /// The generalised demonstration: the 12 keypoint targets the grasp was
+    /// solved for (the demonstration's own on the canonical tool), world
+    /// frame, hand keypoint order. The keypoint reward and the observations use them.
+    pub demo_keypoints: Vec<Point3<f64>>,
+    /// The tool's latent in the category's shape space (zeros: the canonical tool).
+    pub latent: Vec<f64>,
 }
 
 impl GraspPlan {
@@ -46,7 +52,12 @@ impl GraspPlan {
     /// with the tool frame at the world origin).
     pub fn carried(&self, hand: &HandModel, tool_pose: &Isometry3<f64>) -> Self {
         let carry = |g: &Grasp| Grasp::new(hand, tool_pose * g.wrist_pose_world, g.actuated.clone());
-        Self { grasp: carry(&self.grasp), pregrasp: carry(&self.pregrasp), ..self.clone() }
+        Self {
+            grasp: carry(&self.grasp),
+            pregrasp: carry(&self.pregrasp),
+            demo_keypoints: self.demo_keypoints.iter().map(|p| tool_pose * p).collect(),
+            ..self.clone()
+        }
     }
 }
 
@@ -87,6 +98,8 @@ impl GraspPlanner {
                 pregrasp_collision_free: pre.collision_free,
                 source: "demonstration",
                 task_space_distance_cm: 0.0,
+                demo_keypoints: self.demo.keypoints(hand).map_err(engine_error)?,
+                latent: vec![0.0; self.space.modes.len()],
             });
         }
         let k = self.space.instances.iter().position(|n| n == &instance.name).ok_or_else(|| SimError::Plan {
@@ -113,10 +126,17 @@ impl GraspPlanner {
             pregrasp_collision_free: out.pregrasp.collision_free,
             source: "transferred",
             task_space_distance_cm: out.task_space_distance_cm,
+            demo_keypoints: tool.targets.clone(),
+            latent: self.space.train_latents[k].clone(),
         })
     }
 
     pub fn hand(&self) -> &HandModel {
         &self.hand
+    }
+
+    /// Dimension of the category's latent (shape-space modes).
+    pub fn latent_dim(&self) -> usize {
+        self.space.modes.len()
     }
 }
