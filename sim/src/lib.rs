@@ -15,6 +15,7 @@ pub mod engine;
 pub mod episode;
 pub mod hand;
 pub mod mjcf;
+pub mod obs;
 pub mod place;
 pub mod plan;
 pub mod scene;

@@ -215,6 +215,13 @@ fn run_place(a: PlaceArgs) -> Result<(), Box<dyn std::error::Error>> {
                 "category": category.name(),
                 "task": "place_mug",
                 "ranges": setup.ranges,
+                // The policy interface these episodes would be driven through (sim/src/obs.rs).
+                "observation_layout": graspd_sim::obs::ObservationLayout {
+                    keypoints: asset.model().keypoints().len(),
+                    latent_dim: planner.latent_dim(),
+                }
+                .segments(),
+                "action_layout": graspd_sim::obs::ActionLayout { actuated: asset.model().actuated_joints().len() }.segments(),
                 "episodes": total,
                 "successes": successes,
                 "success_rate": successes as f64 / total.max(1) as f64,
