@@ -10,7 +10,7 @@
 //!   matter (see `grid.rs` for why not a k-d tree), and a Verlet neighbour
 //!   list keeps them over the iterations in which the model moves little.
 
-use super::fastexp::{exp_neg, exp_neg_f32_with, madd};
+use super::fastexp::{exp_neg, exp_neg_f32, madd};
 use super::grid::RadiusGrid;
 
 pub type P3 = [f64; 3];
@@ -418,7 +418,6 @@ fn listed_pairs_f32<const FMA: bool>(
     let F32Buffers { xs, ys, pi, row: e, acc, .. } = b;
     let m = starts.len() - 1;
     let n = xs[0].len();
-    assert!(ys[0].len() >= m && data.iter().all(|&j| (j as usize) < n), "neighbour list out of range");
     let (x0, x1, x2) = (&xs[0][..n], &xs[1][..n], &xs[2][..n]);
     // Exponents pair by pair (indexed loads: scalar), then the exponentials
     // over the flat buffer (vectorised), then the weights and row totals.
@@ -428,15 +427,12 @@ fn listed_pairs_f32<const FMA: bool>(
         let range = starts[i] as usize..starts[i + 1] as usize;
         let (yx, yy, yz) = (ys[0][i], ys[1][i], ys[2][i]);
         for (v, &j) in e[range.clone()].iter_mut().zip(&data[range]) {
-            // SAFETY: every listed index is below n (asserted above).
-            let (dx, dy, dz) = unsafe {
-                let j = j as usize;
-                (x0.get_unchecked(j) - yx, x1.get_unchecked(j) - yy, x2.get_unchecked(j) - yz)
-            };
+            let j = j as usize;
+            let (dx, dy, dz) = (x0[j] - yx, x1[j] - yy, x2[j] - yz);
             *v = k * madd::<FMA>(dx, dx, madd::<FMA>(dy, dy, dz * dz));
         }
     }
-    e.iter_mut().for_each(|v| *v = exp_neg_f32_with::<FMA>(*v));
+    e.iter_mut().for_each(|v| *v = exp_neg_f32::<FMA>(*v));
     let den = &mut acc[0];
     den.clear();
     den.resize(n, 0.0);
@@ -445,8 +441,7 @@ fn listed_pairs_f32<const FMA: bool>(
         let w = pi[i];
         for (v, &j) in e[range.clone()].iter_mut().zip(&data[range]) {
             *v *= w;
-            // SAFETY: as above.
-            unsafe { *den.get_unchecked_mut(j as usize) += *v };
+            den[j as usize] += *v;
         }
     }
     let mut log_den = LogSum::default();
@@ -463,14 +458,11 @@ fn listed_pairs_f32<const FMA: bool>(
         let (mut p1, mut a, mut bb, mut cc) = (0.0f32, 0.0f32, 0.0f32, 0.0f32);
         for (v, &j) in e[range.clone()].iter().zip(&data[range]) {
             let j = j as usize;
-            // SAFETY: as above.
-            let (p, xj) = unsafe {
-                (v * inv.get_unchecked(j), [*x0.get_unchecked(j), *x1.get_unchecked(j), *x2.get_unchecked(j)])
-            };
+            let p = v * inv[j];
             p1 += p;
-            a = madd::<FMA>(p, xj[0], a);
-            bb = madd::<FMA>(p, xj[1], bb);
-            cc = madd::<FMA>(p, xj[2], cc);
+            a = madd::<FMA>(p, x0[j], a);
+            bb = madd::<FMA>(p, x1[j], bb);
+            cc = madd::<FMA>(p, x2[j], cc);
         }
         out.p1[i] = p1 as f64;
         out.px[i] = [a as f64, bb as f64, cc as f64];
@@ -578,7 +570,7 @@ impl LogSum {
 #[inline(always)]
 fn affinity<const FMA: bool>(x: &[f32; 3], yx: f32, yy: f32, yz: f32, w: f32, k: f32) -> f32 {
     let (dx, dy, dz) = (x[0] - yx, x[1] - yy, x[2] - yz);
-    w * exp_neg_f32_with::<FMA>(k * madd::<FMA>(dx, dx, madd::<FMA>(dy, dy, dz * dz)))
+    w * exp_neg_f32::<FMA>(k * madd::<FMA>(dx, dx, madd::<FMA>(dy, dy, dz * dz)))
 }
 
 #[cfg(target_arch = "x86_64")]

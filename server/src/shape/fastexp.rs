@@ -41,17 +41,6 @@ pub fn exp_neg(x: f64) -> f64 {
     }
 }
 
-/// e^x for x ≤ 0 in single precision (relative error below 1e-5, from f32
-/// rounding of the argument at large |x|; 1e-7 near 0): eight
-/// lanes per AVX2 register, for the registration's E-step where f32 is plenty.
-/// Below −60 (e⁻⁶⁰ ≈ 1e-26) it returns exactly 0: f32 subnormals begin at
-/// e⁻⁸⁷, and a product with a weight or a coordinate would land among them
-/// (measured: a registration with view weights ran 5× slower from that alone).
-#[inline(always)]
-pub fn exp_neg_f32(x: f32) -> f32 {
-    exp_neg_f32_with::<false>(x)
-}
-
 /// a·b + c, as one fused instruction when `FMA` (only for callers compiled
 /// with the `fma` target feature: elsewhere `mul_add` is a slow library call).
 #[inline(always)]
@@ -63,10 +52,16 @@ pub fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
     }
 }
 
-/// `exp_neg_f32` with its polynomial in fused multiply-adds when `FMA`.
-/// Degree 6 on |f| ≤ ln2/2: truncation error 1.2e-7, at f32's own rounding.
+/// e^x for x ≤ 0 in single precision (relative error below 1e-5, from f32
+/// rounding of the argument at large |x|; 1e-7 near 0): eight
+/// lanes per AVX2 register, for the registration's E-step where f32 is plenty.
+/// Below −60 (e⁻⁶⁰ ≈ 1e-26) it returns exactly 0: f32 subnormals begin at
+/// e⁻⁸⁷, and a product with a weight or a coordinate would land among them
+/// (measured: a registration with view weights ran 5× slower from that alone).
+/// The polynomial (degree 6 on |f| ≤ ln2/2: truncation error 1.2e-7, at
+/// f32's own rounding) is evaluated in fused multiply-adds when `FMA`.
 #[inline(always)]
-pub fn exp_neg_f32_with<const FMA: bool>(x: f32) -> f32 {
+pub fn exp_neg_f32<const FMA: bool>(x: f32) -> f32 {
     const MAGIC: f32 = 12582912.0; // 1.5·2²³
     let t = (if x < -60.0 { -60.0 } else { x }) * std::f32::consts::LOG2_E;
     let r = t + MAGIC;
@@ -101,18 +96,18 @@ mod tests {
         let mut worst32: f64 = 0.0;
         for i in 0..100_000 {
             let x = -(i as f32) * 0.0006; // down to −60, the cut
-            let (a, b) = (exp_neg_f32(x) as f64, (x as f64).exp());
+            let (a, b) = (exp_neg_f32::<false>(x) as f64, (x as f64).exp());
             worst32 = worst32.max(((a - b) / b).abs());
         }
         assert!(worst32 < 1e-5, "worst f32 relative error {worst32}");
         for i in 0..100_000 {
             let x = -(i as f32) * 0.0006;
-            let (a, b) = (exp_neg_f32_with::<true>(x) as f64, (x as f64).exp());
+            let (a, b) = (exp_neg_f32::<true>(x) as f64, (x as f64).exp());
             assert!(((a - b) / b).abs() < 1e-5, "fused: e^{x} = {a}, not {b}");
         }
         assert_eq!(exp_neg(-1e6), 0.0);
-        assert_eq!(exp_neg_f32(-61.0), 0.0);
+        assert_eq!(exp_neg_f32::<false>(-61.0), 0.0);
         // Just above the cut: a normal number, not a subnormal.
-        assert!(exp_neg_f32(-59.9).is_normal() && exp_neg(-599.0).is_normal());
+        assert!(exp_neg_f32::<false>(-59.9).is_normal() && exp_neg(-599.0).is_normal());
     }
 }
