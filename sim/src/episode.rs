@@ -36,7 +36,7 @@ use crate::plan::GraspPlan;
 use crate::plan::GraspPlanner;
 use crate::scene::Scene;
 use crate::scene::{SceneSpec, Table};
-use crate::tool::{DecompositionOptions, ToolBody, ToolMaterial};
+use crate::tool::{DecompositionOptions, ToolBody};
 use graspd::tools::Instance;
 
 /// Lowest tool point above the table for a tool to count as held, metres.
@@ -361,12 +361,7 @@ pub fn lift_instance(
     setup: &LiftSetup,
 ) -> Result<(GraspPlan, LiftOutcome), SimError> {
     let plan = planner.plan(instance)?;
-    let tool = ToolBody::from_mesh(
-        &instance.name,
-        &instance.mesh,
-        ToolMaterial::for_category(instance.category),
-        &setup.decomposition,
-    )?;
+    let tool = ToolBody::from_instance(instance, &setup.decomposition)?;
     let tool_pose = Isometry3::identity();
     let plan = plan.carried(asset.model(), &tool_pose);
     let spec = SceneSpec {
@@ -386,6 +381,7 @@ pub fn lift_instance(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::tool::ToolMaterial;
     use graspd::tools::{self, Category, Split};
 
     fn planner(asset: &HandAsset) -> GraspPlanner {

@@ -399,7 +399,7 @@ fn run_scene(a: SceneArgs) -> Result<(), Box<dyn std::error::Error>> {
     use graspd::tools::{self, Category};
     use graspd_sim::episode::LiftSetup;
     use graspd_sim::scene::{SceneSpec, Table};
-    use graspd_sim::tool::{ToolBody, ToolMaterial};
+    use graspd_sim::tool::ToolBody;
     use nalgebra::Isometry3;
 
     let category: Category = a.category.parse()?;
@@ -407,12 +407,7 @@ fn run_scene(a: SceneArgs) -> Result<(), Box<dyn std::error::Error>> {
     let asset = graspd_sim::hand::HandAsset::default_sih()?;
     let plan = graspd_sim::plan::GraspPlanner::new(asset.model(), category, 0)?.plan(&instance)?;
     let setup = LiftSetup::default();
-    let tool = ToolBody::from_mesh(
-        &instance.name,
-        &instance.mesh,
-        ToolMaterial::for_category(category),
-        &setup.decomposition,
-    )?;
+    let tool = ToolBody::from_instance(&instance, &setup.decomposition)?;
     let spec = SceneSpec {
         name: format!("lift_{}", instance.name),
         physics: setup.physics.clone(),

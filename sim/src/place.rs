@@ -35,7 +35,7 @@ use crate::hand::HandAsset;
 use crate::plan::{GraspPlan, GraspPlanner};
 use crate::scene::{Scene, SceneSpec, Table};
 use crate::task::{self, place_reward, PlaceEpisode, PlaceRanges, PlaceReward, PlaceState};
-use crate::tool::{ToolBody, ToolMaterial};
+use crate::tool::ToolBody;
 
 /// Points sampled on the tool's mesh for its height (the lift term), and their seed.
 pub const HEIGHT_POINTS: usize = 512;
@@ -351,12 +351,7 @@ pub fn place_instance(
 ) -> Result<(GraspPlan, Vec<PlaceOutcome>), SimError> {
     setup.ranges.validate()?;
     let plan = planner.plan(instance)?;
-    let tool = ToolBody::from_mesh(
-        &instance.name,
-        &instance.mesh,
-        ToolMaterial::for_category(instance.category),
-        &setup.base.decomposition,
-    )?;
+    let tool = ToolBody::from_instance(instance, &setup.base.decomposition)?;
     let points = sample_points(&instance.mesh, HEIGHT_POINTS, HEIGHT_POINTS_SEED)
         .map_err(|e| SimError::Tool { reason: format!("sampling the tool's surface: {e}") })?;
     let table = Table::default();
@@ -389,6 +384,7 @@ pub fn place_instance(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::tool::ToolMaterial;
     use graspd::tools::{self, Category};
 
     fn canonical_setup() -> (HandAsset, GraspPlanner, Instance) {

@@ -13,7 +13,7 @@
 use std::fmt::Write as _;
 
 use graspd::geometry::TriMesh;
-use graspd::tools::Category;
+use graspd::tools::{Category, Instance};
 use nalgebra::{Matrix3, Point3, Vector3};
 use parry3d::transformation::vhacd::{VHACDParameters, VHACD};
 
@@ -190,6 +190,11 @@ pub struct ToolBody {
 
 impl ToolBody {
     /// Decomposes the mesh and computes its mass properties.
+    /// A tool instance of the built-in families, named after it, in its category's material.
+    pub fn from_instance(instance: &Instance, decomposition: &DecompositionOptions) -> Result<Self, SimError> {
+        Self::from_mesh(&instance.name, &instance.mesh, ToolMaterial::for_category(instance.category), decomposition)
+    }
+
     pub fn from_mesh(
         name: &str,
         mesh: &TriMesh,

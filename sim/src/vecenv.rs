@@ -126,22 +126,17 @@ impl VecLift {
 
     /// One control step of every environment, in parallel.
     pub fn step(&mut self) {
-        let ctx = StepContext {
-            scene: &self.scene,
-            hand: &self.hand,
-            plan: &self.plan,
-            tool_pose: &self.tool_pose,
-            controller: &self.controller,
-            actions: self.actions,
-            control_hz: self.control_hz,
-            substeps: self.substeps,
-            steps_per_episode: self.steps_per_episode,
-        };
-        let envs = &mut self.envs;
-        self.pool.install(|| envs.par_iter_mut().for_each(|e| ctx.step(e)));
+        let (ctx, envs, pool) = self.split();
+        pool.install(|| envs.par_iter_mut().for_each(|e| ctx.step(e)));
     }
 
     fn step_env(&mut self, i: usize) {
+        let (ctx, envs, _) = self.split();
+        ctx.step(&mut envs[i]);
+    }
+
+    /// What every environment's step reads, beside the environments it writes.
+    fn split(&mut self) -> (StepContext<'_>, &mut Vec<Env>, &rayon::ThreadPool) {
         let ctx = StepContext {
             scene: &self.scene,
             hand: &self.hand,
@@ -153,7 +148,7 @@ impl VecLift {
             substeps: self.substeps,
             steps_per_episode: self.steps_per_episode,
         };
-        ctx.step(&mut self.envs[i]);
+        (ctx, &mut self.envs, &self.pool)
     }
 
     pub fn substeps(&self) -> usize {
