@@ -370,6 +370,7 @@ pub fn lift_instance(
         table: Some(Table::default()),
         tools: vec![(&tool, tool_pose)],
         hand: Some((asset, setup.hand.clone(), plan.pregrasp.wrist_pose_world)),
+        ..Default::default()
     };
     let scene = spec.build()?;
     let mut data = MjData::new(scene.model.clone());
@@ -428,6 +429,7 @@ mod tests {
             table: Some(Table::default()),
             tools: vec![(&tool, Isometry3::identity())],
             hand: Some((&asset, setup.hand.clone(), plan.pregrasp.wrist_pose_world)),
+            ..Default::default()
         };
         let scene = spec.build().unwrap();
         let mut data = MjData::new(scene.model.clone());

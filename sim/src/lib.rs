@@ -11,6 +11,7 @@
 //! (MuJoCo's own arrays are (w, x, y, z); conversions happen at this crate's
 //! edges).
 
+pub mod carry;
 pub mod engine;
 pub mod episode;
 pub mod hand;
@@ -18,6 +19,7 @@ pub mod mjcf;
 pub mod obs;
 pub mod place;
 pub mod plan;
+pub mod position;
 pub mod scene;
 pub mod task;
 pub mod tool;

@@ -20,7 +20,9 @@ enum Command {
     /// Scripted grasp-and-lift episodes: pre-grasp, close, lift 10 cm, hold 2 s.
     Lift(LiftArgs),
     /// Place-mug episodes with the scripted controller (pre-grasp, close, lift, move to the goal, place, release).
-    Place(PlaceArgs),
+    Place(PoseTaskArgs),
+    /// Position-drill episodes with the scripted controller (pre-grasp, close, lift, carry to the goal pose in the air, hold).
+    Position(PoseTaskArgs),
     /// Throughput of N mug-lift environments stepped in parallel.
     Bench(BenchArgs),
     /// Writes a lift scene's MJCF (table, tool, hand at the pre-grasp), for MuJoCo's own tools.
@@ -60,9 +62,10 @@ struct BenchArgs {
 }
 
 #[derive(clap::Args)]
-struct PlaceArgs {
-    #[arg(long, default_value = "mug")]
-    category: String,
+struct PoseTaskArgs {
+    /// The task's category (place: mug; position: drill), the only one it takes.
+    #[arg(long)]
+    category: Option<String>,
     /// `canonical`, `train`, `all` (canonical and train) or one instance name.
     #[arg(long, default_value = "all")]
     instances: String,
@@ -128,7 +131,8 @@ fn main() -> ExitCode {
             Ok(())
         }
         Command::Lift(a) => run_lift(a),
-        Command::Place(a) => run_place(a),
+        Command::Place(a) => run_pose_task(a, PoseTask::PlaceMug),
+        Command::Position(a) => run_pose_task(a, PoseTask::PositionDrill),
         Command::Bench(a) => run_bench(a),
         Command::Scene(a) => run_scene(a),
     };
@@ -162,25 +166,49 @@ fn choose_instances<'a>(
     })
 }
 
-fn run_place(a: PlaceArgs) -> Result<(), Box<dyn std::error::Error>> {
+#[derive(Clone, Copy, PartialEq)]
+enum PoseTask {
+    PlaceMug,
+    PositionDrill,
+}
+
+/// `sim place` and `sim position`: the goal-pose tasks, one report format.
+fn run_pose_task(a: PoseTaskArgs, task: PoseTask) -> Result<(), Box<dyn std::error::Error>> {
     use graspd::tools::{self, Category};
     use graspd_sim::place::{place_instance, PlaceSetup};
-    let category: Category = a.category.parse()?;
-    if category != Category::Mug {
-        return Err(format!("place is the mug task; {category} has its own task (not built yet)").into());
+    use graspd_sim::position::{position_instance, DrillSetup};
+    let (task_name, own) = match task {
+        PoseTask::PlaceMug => ("place_mug", Category::Mug),
+        PoseTask::PositionDrill => ("position_drill", Category::Drill),
+    };
+    let category: Category = match &a.category {
+        Some(c) => c.parse()?,
+        None => own,
+    };
+    if category != own {
+        return Err(format!("{task_name} takes the {own} category, not {category}").into());
     }
     let family = tools::family(category)?;
     let chosen = choose_instances(&family, category, &a.instances)?;
     let asset = graspd_sim::hand::HandAsset::default_sih()?;
     let mut planner = graspd_sim::plan::GraspPlanner::new(asset.model(), category, a.seed)?;
-    let mut setup = PlaceSetup::default();
+    let mut place = PlaceSetup::default();
+    let mut position = DrillSetup::default();
     if let Some(n) = a.noslip_iterations {
-        setup.base.physics.noslip_iterations = n;
+        place.base.physics.noslip_iterations = n;
+        position.base.physics.noslip_iterations = n;
     }
+    let ranges = match task {
+        PoseTask::PlaceMug => serde_json::to_value(&place.ranges)?,
+        PoseTask::PositionDrill => serde_json::to_value(&position.ranges)?,
+    };
     let mut rows = Vec::new();
     let (mut successes, mut total) = (0usize, 0usize);
     for inst in chosen {
-        let (plan, outs) = place_instance(&asset, &mut planner, inst, &setup, a.seed, a.episodes)?;
+        let (plan, outs) = match task {
+            PoseTask::PlaceMug => place_instance(&asset, &mut planner, inst, &place, a.seed, a.episodes)?,
+            PoseTask::PositionDrill => position_instance(&asset, &mut planner, inst, &position, a.seed, a.episodes)?,
+        };
         let ok = outs.iter().filter(|o| o.success).count();
         successes += ok;
         total += outs.len();
@@ -213,8 +241,8 @@ fn run_place(a: PlaceArgs) -> Result<(), Box<dyn std::error::Error>> {
             "{}",
             serde_json::to_string_pretty(&serde_json::json!({
                 "category": category.name(),
-                "task": "place_mug",
-                "ranges": setup.ranges,
+                "task": task_name,
+                "ranges": ranges,
                 // The policy interface these episodes would be driven through (sim/src/obs.rs).
                 "observation_layout": graspd_sim::obs::ObservationLayout {
                     keypoints: asset.model().keypoints().len(),
@@ -339,6 +367,7 @@ fn run_bench(a: BenchArgs) -> Result<(), Box<dyn std::error::Error>> {
         table: Some(Table::default()),
         tools: vec![(&tool, Isometry3::identity())],
         hand: Some((&asset, setup.hand.clone(), plan.pregrasp.wrist_pose_world)),
+        ..Default::default()
     };
     let mut envs = VecLift::new(
         spec.build()?,
@@ -414,6 +443,7 @@ fn run_scene(a: SceneArgs) -> Result<(), Box<dyn std::error::Error>> {
         table: Some(Table::default()),
         tools: vec![(&tool, Isometry3::identity())],
         hand: Some((&asset, setup.hand.clone(), plan.pregrasp.wrist_pose_world)),
+        ..Default::default()
     };
     let xml = spec.to_mjcf();
     // Compile it before writing, so a written file is a valid model.

@@ -461,6 +461,7 @@ mod tests {
             table: Some(Table::default()),
             tools: vec![(&tool, episode.start)],
             hand: Some((&asset, setup.base.hand.clone(), plan.grasp.wrist_pose_world)),
+            ..Default::default()
         };
         let scene = spec.build().unwrap();
         let mut data = MjData::new(scene.model.clone());

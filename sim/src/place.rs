@@ -2,44 +2,31 @@
 //! lift → move to the goal → lower → release → retreat, 10 s at 30 Hz, the
 //! reward of [`crate::task`] summed every control step.
 //!
-//! The first five phases are the lift script ([`LiftController`], with a
-//! short hold). Then the controller steers the *tool*: a desired tool pose
-//! moves from where the tool is at the end of the lift to above the goal
-//! (keeping its height), then down to [`PlaceScript::place_clearance_m`]
-//! above it. The wrist command is the desired tool motion applied to the
-//! lifted wrist command, corrected every step by a fraction of the tool's
-//! remaining pose error (an integral action: the weld between the mocap
-//! target and the palm sags under the tool's weight, and the tool may have
-//! turned in the hand while lifting). Then the fingers open to the
+//! The first five phases are the lift script, then the controller carries
+//! the tool ([`CarryController`]): a desired tool pose moves from where the
+//! tool is at the end of the lift to above the goal (keeping its height),
+//! then down to [`PlaceScript::place_clearance_m`] above it, and is held
+//! there while the correction converges. Then the fingers open to the
 //! pre-grasp's joints and the wrist backs off along the pre-grasp's offset
 //! and up.
 //!
 //! Success is the paper's rule (d < 3 cm, θ < 0.2 rad) on the tool's pose at
 //! the end of the episode, with the hand gone: the mug must rest there.
 
-use std::time::Instant;
-
-use graspd::geometry::sample::sample_points;
 use graspd::hand::HandModel;
 use graspd::tools::Instance;
 use mujoco_rs::prelude::MjData;
 use mujoco_rs::wrappers::mj_model::traits::ModelType;
-use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
+use nalgebra::{Isometry3, Point3, Translation3};
 use serde::Serialize;
 
+use crate::carry::{CarryController, EpisodeStepper, Steering, TaskRig};
 use crate::engine::SimError;
-use crate::episode::{
-    ease, lerp_pose, reset_to_pregrasp, squeezed, substeps, warnings, LiftController, LiftScript, LiftSetup,
-};
+use crate::episode::{ease, lerp_pose, warnings, LiftScript, LiftSetup};
 use crate::hand::HandAsset;
 use crate::plan::{GraspPlan, GraspPlanner};
-use crate::scene::{Scene, SceneSpec, Table};
-use crate::task::{self, place_reward, PlaceEpisode, PlaceRanges, PlaceReward, PlaceState};
-use crate::tool::ToolBody;
-
-/// Points sampled on the tool's mesh for its height (the lift term), and their seed.
-pub const HEIGHT_POINTS: usize = 512;
-pub const HEIGHT_POINTS_SEED: u64 = 7;
+use crate::scene::Scene;
+use crate::task::{self, pose_reward, PlaceRanges, PoseEpisode, PoseReward, PoseState};
 
 /// Timings of the phases after the lift, and the controller's settings.
 #[derive(Clone, Debug, PartialEq)]
@@ -56,12 +43,7 @@ pub struct PlaceScript {
     pub place_clearance_m: f64,
     /// Rise of the wrist while it backs off, metres.
     pub retreat_up_m: f64,
-    /// Share of the tool's remaining pose error added to the wrist command each control step.
-    pub correction_gain: f64,
-    /// Largest total correction of the wrist command (metres, radians): a
-    /// dropped tool must not send the hand chasing it.
-    pub max_correction_m: f64,
-    pub max_correction_rad: f64,
+    pub steering: Steering,
 }
 
 impl Default for PlaceScript {
@@ -75,63 +57,50 @@ impl Default for PlaceScript {
             retreat_s: 0.8,
             place_clearance_m: 0.004,
             retreat_up_m: 0.06,
-            correction_gain: 0.15,
-            max_correction_m: 0.05,
-            max_correction_rad: 0.5,
+            steering: Steering::default(),
         }
     }
 }
 
-/// The scripted Place-mug controller. Stateful: it remembers where the tool
-/// was when the lift ended and the correction it has built up; one per
-/// episode ([`Self::new`] again, or [`Self::reset`]).
+/// The scripted Place-mug controller. Stateful (it carries a
+/// [`CarryController`]); one per episode, or [`Self::reset`].
 #[derive(Clone, Debug)]
 pub struct PlaceController {
-    lift: LiftController,
+    carry: CarryController,
     goal: Isometry3<f64>,
-    lifted_wrist: Isometry3<f64>,
     /// The pre-grasp's offset from the grasp, palm frame (the back-off).
     backoff: Isometry3<f64>,
-    q_squeeze: Vec<f64>,
     q_open: Vec<f64>,
     script: PlaceScript,
     /// End times of move, lower, align, release, retreat.
     ends: [f64; 5],
-    /// Tool pose at the end of the lift, once seen.
-    tool_at_lift: Option<Isometry3<f64>>,
-    correction: Isometry3<f64>,
-    /// The last wrist command before the fingers open.
-    placed_wrist: Option<Isometry3<f64>>,
 }
 
 impl PlaceController {
     pub fn new(hand: &HandModel, plan: &GraspPlan, goal: Isometry3<f64>, script: &PlaceScript) -> Self {
-        let lift = LiftController::new(hand, plan, &script.lift);
+        let carry = CarryController::new(hand, plan, &script.lift, &script.steering);
         let mut ends = [script.move_s, script.lower_s, script.align_s, script.release_s, script.retreat_s];
-        ends[0] += lift.duration();
+        ends[0] += carry.lift_duration();
         for k in 1..ends.len() {
             ends[k] += ends[k - 1];
         }
-        let lifted_wrist = lift.lifted_wrist();
         Self {
-            lift,
+            carry,
             goal,
-            lifted_wrist,
             backoff: plan.grasp.wrist_pose_world.inverse() * plan.pregrasp.wrist_pose_world,
-            q_squeeze: squeezed(hand, &plan.grasp, script.lift.squeeze_rad),
             q_open: plan.pregrasp.actuated.clone(),
             script: script.clone(),
             ends,
-            tool_at_lift: None,
-            correction: Isometry3::identity(),
-            placed_wrist: None,
         }
     }
 
     pub fn reset(&mut self) {
-        self.tool_at_lift = None;
-        self.correction = Isometry3::identity();
-        self.placed_wrist = None;
+        self.carry.reset();
+    }
+
+    /// End of the lift script, seconds.
+    pub fn lift_duration(&self) -> f64 {
+        self.carry.lift_duration()
     }
 
     /// End of the whole script, seconds (the episode may run on).
@@ -146,7 +115,7 @@ impl PlaceController {
 
     /// The desired tool pose at time `t` of the move, lower and align phases.
     fn desired_tool(&self, t: f64, from: &Isometry3<f64>) -> Isometry3<f64> {
-        let start = self.lift.duration();
+        let start = self.carry.lift_duration();
         let [moved, lowered, ..] = self.ends;
         let mut above = self.goal;
         above.translation.vector.z = from.translation.vector.z;
@@ -164,23 +133,20 @@ impl PlaceController {
     /// Wrist and joint targets (into `q`) for the control interval ending at
     /// `t`, given the tool's current pose.
     pub fn targets(&mut self, t: f64, tool_pose: &Isometry3<f64>, q: &mut [f64]) -> Isometry3<f64> {
-        if t <= self.lift.duration() {
-            return self.lift.targets(t, q);
+        if t <= self.carry.lift_duration() {
+            return self.carry.lift_targets(t, q);
         }
-        let from = *self.tool_at_lift.get_or_insert(*tool_pose);
+        let from = self.carry.carry_start(tool_pose);
         let [_, _, aligned, released, retreated] = self.ends;
         if t <= aligned {
-            q.copy_from_slice(&self.q_squeeze);
             let desired = self.desired_tool(t, &from);
-            self.correct(&desired, tool_pose);
-            let wrist = self.correction * desired * from.inverse() * self.lifted_wrist;
-            self.placed_wrist = Some(wrist);
-            return wrist;
+            return self.carry.steer(&desired, tool_pose, q);
         }
-        let placed = self.placed_wrist.unwrap_or(self.lifted_wrist);
+        let placed = self.carry.last_wrist();
+        let q_squeeze = self.carry.q_squeeze();
         if t <= released {
             let s = ease((t - aligned) / self.script.release_s);
-            for ((q, a), b) in q.iter_mut().zip(&self.q_squeeze).zip(&self.q_open) {
+            for ((q, a), b) in q.iter_mut().zip(q_squeeze).zip(&self.q_open) {
                 *q = a + s * (b - a);
             }
             return placed;
@@ -189,31 +155,15 @@ impl PlaceController {
         let away = Translation3::new(0.0, 0.0, self.script.retreat_up_m) * placed * self.backoff;
         lerp_pose(&placed, &away, ease((t - released) / (retreated - released)))
     }
-
-    /// Adds a share of the tool's pose error to the correction, turning about
-    /// the tool's own position (so a turn does not also shift it), capped.
-    fn correct(&mut self, desired: &Isometry3<f64>, actual: &Isometry3<f64>) {
-        let k = self.script.correction_gain;
-        let c = actual.translation.vector;
-        let rot = UnitQuaternion::identity().slerp(&(desired.rotation * actual.rotation.inverse()), k);
-        let shift = k * (desired.translation.vector - c);
-        let step = Translation3::from(c + shift) * rot * Translation3::from(-c);
-        let next = step * self.correction;
-        if next.translation.vector.norm() <= self.script.max_correction_m
-            && next.rotation.angle() <= self.script.max_correction_rad
-        {
-            self.correction = next;
-        }
-    }
 }
 
-/// How a Place-mug episode went.
+/// How an episode of a goal-pose task (Place mug, Position drill) went.
 #[derive(Clone, Debug, Serialize)]
-pub struct PlaceOutcome {
+pub struct PoseOutcome {
     pub seed: u64,
     /// The paper's rule at the end of the episode.
     pub success: bool,
-    /// First time the rule held, seconds (the mug may pass through the goal).
+    /// First time the rule held, seconds (the tool may pass through the goal).
     pub first_reached_s: Option<f64>,
     pub final_distance_m: f64,
     pub final_angle_rad: f64,
@@ -221,78 +171,65 @@ pub struct PlaceOutcome {
     pub clearance_after_lift_m: f64,
     /// Sum of the per-step rewards, and its terms.
     pub episode_return: f64,
-    pub return_terms: PlaceReward,
+    pub return_terms: PoseReward,
     pub control_steps: usize,
     pub physics_us_per_step: f64,
     pub warnings: Vec<String>,
 }
 
-/// The lowest of `points` (tool frame) above `table_z` with the tool at `pose`.
-pub fn clearance(points: &[Point3<f64>], pose: &Isometry3<f64>, table_z: f64) -> f64 {
-    points.iter().map(|p| (pose * p).z).fold(f64::INFINITY, f64::min) - table_z
+/// A scripted controller of a goal-pose task.
+pub trait PoseController {
+    /// End of its lift script, seconds.
+    fn lift_duration(&self) -> f64;
+    /// Wrist and joint targets (into `q`) for the control interval ending at `t`.
+    fn targets(&mut self, t: f64, tool_pose: &Isometry3<f64>, q: &mut [f64]) -> Isometry3<f64>;
 }
 
-/// One Place-mug episode: `plan` made with the tool frame at the origin,
-/// `height_points` on the tool's mesh (tool frame).
+impl PoseController for PlaceController {
+    fn lift_duration(&self) -> f64 {
+        PlaceController::lift_duration(self)
+    }
+    fn targets(&mut self, t: f64, tool_pose: &Isometry3<f64>, q: &mut [f64]) -> Isometry3<f64> {
+        PlaceController::targets(self, t, tool_pose, q)
+    }
+}
+
+/// One episode of a goal-pose task: `plan` made with the tool frame at the
+/// origin and carried here to the episode's start, `height_points` on the
+/// tool's mesh (tool frame), the controller made from the carried plan by
+/// `controller`. Success is judged at the end of the episode.
 #[allow(clippy::too_many_arguments)]
-pub fn run_place<M: ModelType>(
+pub fn run_pose_episode<M: ModelType, C: PoseController>(
     scene: &Scene,
     data: &mut MjData<M>,
     hand_model: &HandModel,
     plan: &GraspPlan,
     height_points: &[Point3<f64>],
-    episode: &PlaceEpisode,
-    script: &PlaceScript,
+    episode: &PoseEpisode,
     control_hz: f64,
-) -> Result<PlaceOutcome, SimError> {
+    controller: impl FnOnce(&GraspPlan) -> C,
+) -> Result<PoseOutcome, SimError> {
     let plan = plan.carried(hand_model, &episode.start);
-    reset_to_pregrasp(scene, data, hand_model, &plan, &episode.start)?;
-    let hand = scene.hand.as_ref().ok_or(SimError::MissingElement { kind: "hand", name: "hand".into() })?;
-    let tool = scene.tools.first().ok_or(SimError::MissingElement { kind: "tool", name: "tool".into() })?;
+    let mut stepper = EpisodeStepper::start(scene, data, hand_model, &plan, &episode.start, control_hz)?;
     let table_z = scene.table.map_or(0.0, |(_, z)| z);
-    let substeps = substeps(scene, control_hz);
-    let trace = std::env::var_os("GRASPD_SIM_TRACE").is_some_and(|v| v != "0");
-    // The demonstration's keypoints in the tool frame: they ride with the tool.
-    let tool_from_world = episode.start.inverse();
-    let demo_tool: Vec<Point3<f64>> = plan.demo_keypoints.iter().map(|p| tool_from_world * p).collect();
-    let mut controller = PlaceController::new(hand_model, &plan, episode.goal, script);
+    let mut controller = controller(&plan);
     let n_control = (task::EPISODE_S * control_hz).round() as usize;
     let mut q = plan.pregrasp.actuated.clone();
-    let mut sum = PlaceReward::default();
+    let mut sum = PoseReward::default();
     let mut first_reached = None;
     let mut clearance_after_lift = f64::NAN;
-    let lifted_at = controller.lift.duration();
-    let mut physics_time = 0.0;
-    let mut demo_world = vec![Point3::origin(); demo_tool.len()];
+    let lifted_at = controller.lift_duration();
     for k in 0..n_control {
         let t = (k + 1) as f64 / control_hz;
-        let pose = tool.pose(data);
+        let pose = stepper.tool.pose(data);
         let wrist = controller.targets(t, &pose, &mut q);
-        hand.set_wrist_target(data, &wrist);
-        hand.set_joint_targets(data, &q);
-        let t0 = Instant::now();
-        for _ in 0..substeps {
-            data.step();
-        }
-        physics_time += t0.elapsed().as_secs_f64();
-        let pose = tool.pose(data);
-        for (w, p) in demo_world.iter_mut().zip(&demo_tool) {
-            *w = pose * p;
-        }
-        let keypoints = hand.keypoints(data);
-        let clear = clearance(height_points, &pose, table_z);
-        let r = place_reward(&PlaceState {
-            tool_pose: pose,
-            goal: episode.goal,
-            hand_keypoints: &keypoints,
-            demo_keypoints: &demo_world,
-            clearance_m: clear,
-        });
-        sum.pose += r.pose;
-        sum.success += r.success;
-        sum.kp += r.kp;
-        sum.lift += r.lift;
-        sum.total += r.total;
+        stepper.step(data, &wrist, &q);
+        let pose = stepper.tool.pose(data);
+        let trace = stepper.trace;
+        let grasp = stepper.grasp_state(data, &pose, height_points, table_z);
+        let clear = grasp.clearance_m;
+        let r = pose_reward(&PoseState { tool_pose: pose, goal: episode.goal, grasp });
+        sum.accumulate(&r);
         if r.success > 0.0 && first_reached.is_none() {
             first_reached = Some(t);
         }
@@ -313,10 +250,9 @@ pub fn run_place<M: ModelType>(
             );
         }
     }
-    let end = tool.pose(data);
+    let end = stepper.tool.pose(data);
     let (d, theta) = task::pose_error(&end, &episode.goal);
-    let physics_steps = n_control * substeps;
-    Ok(PlaceOutcome {
+    Ok(PoseOutcome {
         seed: episode.seed,
         success: task::reached(&end, &episode.goal),
         first_reached_s: first_reached,
@@ -324,10 +260,28 @@ pub fn run_place<M: ModelType>(
         final_angle_rad: theta,
         clearance_after_lift_m: clearance_after_lift,
         episode_return: sum.total,
-        return_terms: PlaceReward { distance_m: d, angle_rad: theta, ..sum },
+        return_terms: PoseReward { distance_m: d, angle_rad: theta, ..sum },
         control_steps: n_control,
-        physics_us_per_step: 1e6 * physics_time / physics_steps.max(1) as f64,
+        physics_us_per_step: stepper.physics_us_per_step(),
         warnings: warnings(data),
+    })
+}
+
+/// One Place-mug episode: `plan` made with the tool frame at the origin,
+/// `height_points` on the tool's mesh (tool frame).
+#[allow(clippy::too_many_arguments)]
+pub fn run_place<M: ModelType>(
+    scene: &Scene,
+    data: &mut MjData<M>,
+    hand_model: &HandModel,
+    plan: &GraspPlan,
+    height_points: &[Point3<f64>],
+    episode: &PoseEpisode,
+    script: &PlaceScript,
+    control_hz: f64,
+) -> Result<PoseOutcome, SimError> {
+    run_pose_episode(scene, data, hand_model, plan, height_points, episode, control_hz, |plan| {
+        PlaceController::new(hand_model, plan, episode.goal, script)
     })
 }
 
@@ -348,43 +302,33 @@ pub fn place_instance(
     setup: &PlaceSetup,
     first_seed: u64,
     episodes: usize,
-) -> Result<(GraspPlan, Vec<PlaceOutcome>), SimError> {
+) -> Result<(GraspPlan, Vec<PoseOutcome>), SimError> {
     setup.ranges.validate()?;
-    let plan = planner.plan(instance)?;
-    let tool = ToolBody::from_instance(instance, &setup.base.decomposition)?;
-    let points = sample_points(&instance.mesh, HEIGHT_POINTS, HEIGHT_POINTS_SEED)
-        .map_err(|e| SimError::Tool { reason: format!("sampling the tool's surface: {e}") })?;
-    let table = Table::default();
-    let spec = SceneSpec {
-        name: format!("place_{}", instance.name),
-        physics: setup.base.physics.clone(),
-        table: Some(table.clone()),
-        tools: vec![(&tool, Isometry3::identity())],
-        hand: Some((asset, setup.base.hand.clone(), plan.pregrasp.wrist_pose_world)),
-    };
-    let scene = spec.build()?;
-    let mut data = MjData::new(scene.model.clone());
+    let mut rig = TaskRig::build(asset, planner, instance, &setup.base, "place", Vec::new(), Vec::new())?;
     let mut out = Vec::with_capacity(episodes);
     for e in 0..episodes as u64 {
-        let episode = setup.ranges.sample(first_seed.wrapping_add(e), table.top_z);
+        let episode = setup.ranges.sample(first_seed.wrapping_add(e), rig.table.top_z);
         out.push(run_place(
-            &scene,
-            &mut data,
+            &rig.scene,
+            &mut rig.data,
             asset.model(),
-            &plan,
-            &points,
+            &rig.plan,
+            &rig.height_points,
             &episode,
             &setup.script,
             setup.base.physics.control_hz,
         )?);
     }
-    Ok((plan, out))
+    Ok((rig.plan, out))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::tool::ToolMaterial;
+    use crate::carry::{HEIGHT_POINTS, HEIGHT_POINTS_SEED};
+    use crate::scene::{SceneSpec, Table};
+    use crate::tool::{ToolBody, ToolMaterial};
+    use graspd::geometry::sample::sample_points;
     use graspd::tools::{self, Category};
 
     fn canonical_setup() -> (HandAsset, GraspPlanner, Instance) {
@@ -431,6 +375,7 @@ mod tests {
             table: Some(Table::default()),
             tools: vec![(&tool, Isometry3::identity())],
             hand: Some((&asset, setup.base.hand.clone(), plan.pregrasp.wrist_pose_world)),
+            ..Default::default()
         };
         let scene = spec.build().unwrap();
         let mut data = MjData::new(scene.model.clone());

@@ -30,7 +30,7 @@ impl Default for Table {
 }
 
 /// What goes into a scene.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub struct SceneSpec<'a> {
     pub name: String,
     pub physics: PhysicsOptions,
@@ -39,6 +39,11 @@ pub struct SceneSpec<'a> {
     pub tools: Vec<(&'a ToolBody, Isometry3<f64>)>,
     /// The hand, its options and its initial wrist pose.
     pub hand: Option<(&'a HandAsset, HandMjcfOptions, Isometry3<f64>)>,
+    /// Further MJCF worldbody elements (a task's fixtures: the nail's board
+    /// and the nail), written after the tools.
+    pub extra_bodies: Vec<String>,
+    /// Further `<contact>` elements (pairs, exclusions) for those fixtures.
+    pub extra_contact: Vec<String>,
 }
 
 impl SceneSpec<'_> {
@@ -59,6 +64,8 @@ impl SceneSpec<'_> {
             doc.assets.extend(tool.assets());
             doc.worldbody.push(tool.body(pose));
         }
+        doc.worldbody.extend(self.extra_bodies.iter().cloned());
+        doc.contact.extend(self.extra_contact.iter().cloned());
         if let Some((asset, opts, wrist)) = &self.hand {
             let h = hand_mjcf(asset, opts, wrist);
             doc.worldbody.extend(h.bodies);
@@ -194,6 +201,7 @@ mod tests {
             table: Some(Table::default()),
             tools: vec![(&body, start)],
             hand: None,
+            ..Default::default()
         };
         let scene = spec.build().unwrap();
         let tool = &scene.tools[0];

@@ -244,6 +244,7 @@ mod tests {
             table: Some(Table::default()),
             tools: vec![(&tool, Isometry3::identity())],
             hand: Some((&asset, setup.hand.clone(), plan.pregrasp.wrist_pose_world)),
+            ..Default::default()
         };
         let lone_scene = spec.build().unwrap();
         let mut lone = MjData::new(lone_scene.model.clone());

@@ -47,3 +47,23 @@ fn lift_json_lists_each_episode() {
     assert_eq!(r["instance"], "mug_canonical");
     assert_eq!(r["outcome"]["held"], true);
 }
+
+#[test]
+fn position_json_reports_the_drill_task() {
+    let v = sim(&["position", "--instances", "canonical", "--episodes", "2", "--json"]);
+    assert_eq!(v["task"], "position_drill");
+    assert_eq!(v["category"], "drill");
+    assert_eq!(v["episodes"], 2);
+    assert_eq!(v["successes"], 2);
+    assert!(v["ranges"]["goal_height"].is_array(), "{v}");
+    let e = &v["results"][0]["episodes"][0];
+    assert!(e["final_distance_m"].as_f64().unwrap() < 0.03, "{e}");
+    assert!(e["return_terms"]["pose"].as_f64().unwrap() > 0.0, "{e}");
+}
+
+#[test]
+fn a_task_refuses_another_category_with_a_message() {
+    let out = Command::new(env!("CARGO_BIN_EXE_sim")).args(["place", "--category", "drill"]).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("mug"), "{}", String::from_utf8_lossy(&out.stderr));
+}
