@@ -119,7 +119,17 @@ impl CarryController {
         wrist
     }
 
-    /// The last wrist command of [`Self::steer`] (the lifted wrist before any).
+    /// The wrist command for `desired` with the correction as it stands (not
+    /// updated: the tool's error during an impact is not the grip's drift).
+    pub fn command(&mut self, desired: &Isometry3<f64>, q: &mut [f64]) -> Isometry3<f64> {
+        let from = self.tool_at_lift.unwrap_or(*desired);
+        q.copy_from_slice(&self.q_squeeze);
+        let wrist = self.correction * desired * from.inverse() * self.lifted_wrist;
+        self.last_wrist = Some(wrist);
+        wrist
+    }
+
+    /// The last wrist command of [`Self::steer`] or [`Self::command`] (the lifted wrist before any).
     pub fn last_wrist(&self) -> Isometry3<f64> {
         self.last_wrist.unwrap_or(self.lifted_wrist)
     }

@@ -16,6 +16,7 @@ pub mod engine;
 pub mod episode;
 pub mod hand;
 pub mod mjcf;
+pub mod nail;
 pub mod obs;
 pub mod place;
 pub mod plan;

@@ -23,6 +23,8 @@ enum Command {
     Place(PoseTaskArgs),
     /// Position-drill episodes with the scripted controller (pre-grasp, close, lift, carry to the goal pose in the air, hold).
     Position(PoseTaskArgs),
+    /// Drive-nail episodes with the scripted controller (pre-grasp, close, lift, face down over the nail, strike).
+    Nail(NailArgs),
     /// Throughput of N mug-lift environments stepped in parallel.
     Bench(BenchArgs),
     /// Writes a lift scene's MJCF (table, tool, hand at the pre-grasp), for MuJoCo's own tools.
@@ -57,6 +59,45 @@ struct BenchArgs {
     /// Physics steps per 30 Hz control step.
     #[arg(long)]
     substeps: Option<usize>,
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(clap::Args)]
+struct NailArgs {
+    /// The task's category (hammer), the only one it takes.
+    #[arg(long, default_value = "hammer")]
+    category: String,
+    /// `canonical`, `train`, `all` (canonical and train) or one instance name.
+    #[arg(long, default_value = "all")]
+    instances: String,
+    /// Episodes per instance (random hammer start, seeds `seed`, `seed + 1`, ...).
+    #[arg(long, default_value_t = 5)]
+    episodes: usize,
+    /// First episode seed (also the grasp solver's seed).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Coulomb friction of the nail's slide, N (default: the fixture's).
+    #[arg(long)]
+    frictionloss: Option<f64>,
+    /// Damping of the nail's slide, N·s/m (default: the fixture's).
+    #[arg(long)]
+    damping: Option<f64>,
+    /// Height of the face above the head before a strike, m (default: the script's).
+    #[arg(long)]
+    raise_m: Option<f64>,
+    /// How far below the head a strike aims, m (default: the script's).
+    #[arg(long)]
+    overshoot_m: Option<f64>,
+    /// Duration of a strike's downswing, s (default: the script's).
+    #[arg(long)]
+    down_s: Option<f64>,
+    /// Closing commanded beyond the grasp's joints, rad (default: the script's).
+    #[arg(long)]
+    squeeze_rad: Option<f64>,
+    /// MuJoCo no-slip solver iterations (0: off).
+    #[arg(long)]
+    noslip_iterations: Option<usize>,
     #[arg(long)]
     json: bool,
 }
@@ -133,6 +174,7 @@ fn main() -> ExitCode {
         Command::Lift(a) => run_lift(a),
         Command::Place(a) => run_pose_task(a, PoseTask::PlaceMug),
         Command::Position(a) => run_pose_task(a, PoseTask::PositionDrill),
+        Command::Nail(a) => run_nail(a),
         Command::Bench(a) => run_bench(a),
         Command::Scene(a) => run_scene(a),
     };
@@ -244,6 +286,99 @@ fn run_pose_task(a: PoseTaskArgs, task: PoseTask) -> Result<(), Box<dyn std::err
                 "task": task_name,
                 "ranges": ranges,
                 // The policy interface these episodes would be driven through (sim/src/obs.rs).
+                "observation_layout": graspd_sim::obs::ObservationLayout {
+                    keypoints: asset.model().keypoints().len(),
+                    latent_dim: planner.latent_dim(),
+                }
+                .segments(),
+                "action_layout": graspd_sim::obs::ActionLayout { actuated: asset.model().actuated_joints().len() }.segments(),
+                "episodes": total,
+                "successes": successes,
+                "success_rate": successes as f64 / total.max(1) as f64,
+                "results": rows,
+            }))?
+        );
+    } else {
+        println!("success {successes} of {total}");
+    }
+    Ok(())
+}
+
+fn run_nail(a: NailArgs) -> Result<(), Box<dyn std::error::Error>> {
+    use graspd::tools::{self, Category};
+    use graspd_sim::nail::{nail_instance, NailSetup};
+    let category: Category = a.category.parse()?;
+    if category != Category::Hammer {
+        return Err(format!("drive_nail takes the hammer category, not {category}").into());
+    }
+    let family = tools::family(category)?;
+    let chosen = choose_instances(&family, category, &a.instances)?;
+    let asset = graspd_sim::hand::HandAsset::default_sih()?;
+    let mut planner = graspd_sim::plan::GraspPlanner::new(asset.model(), category, a.seed)?;
+    let mut setup = NailSetup::default();
+    if let Some(n) = a.noslip_iterations {
+        setup.base.physics.noslip_iterations = n;
+    }
+    if let Some(f) = a.frictionloss {
+        setup.fixture.frictionloss_n = f;
+    }
+    if let Some(d) = a.damping {
+        setup.fixture.damping_ns_per_m = d;
+    }
+    if let Some(v) = a.raise_m {
+        setup.script.raise_m = v;
+    }
+    if let Some(v) = a.overshoot_m {
+        setup.script.overshoot_m = v;
+    }
+    if let Some(v) = a.down_s {
+        setup.script.down_s = v;
+    }
+    if let Some(v) = a.squeeze_rad {
+        setup.script.lift.squeeze_rad = v;
+    }
+    let mut rows = Vec::new();
+    let (mut successes, mut total) = (0usize, 0usize);
+    for inst in chosen {
+        let (plan, outs) = nail_instance(&asset, &mut planner, inst, &setup, a.seed, a.episodes)?;
+        let ok = outs.iter().filter(|o| o.success).count();
+        successes += ok;
+        total += outs.len();
+        if !a.json {
+            for o in &outs {
+                println!(
+                    "{:<18} seed {:<4} success {:<5} depth {:5.1} mm  strikes {:2}  first driven {:>6}  lift clear {:6.1} mm  aim {:5.1} mm  held {:<5}  return {:8.1}{}",
+                    inst.name,
+                    o.seed,
+                    o.success,
+                    1e3 * o.depth_m,
+                    o.strikes,
+                    o.first_driven_s.map_or("-".to_owned(), |t| format!("{t:.2} s")),
+                    1e3 * o.clearance_after_lift_m,
+                    1e3 * o.face_distance_at_first_strike_m,
+                    o.held_at_end,
+                    o.episode_return,
+                    if o.warnings.is_empty() { String::new() } else { format!("  warnings: {}", o.warnings.join(", ")) }
+                );
+            }
+        }
+        rows.push(serde_json::json!({
+            "instance": inst.name,
+            "split": inst.split.name(),
+            "grasp_source": plan.source,
+            "successes": ok,
+            "episodes": outs,
+        }));
+    }
+    if a.json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "category": category.name(),
+                "task": "drive_nail",
+                "ranges": setup.ranges,
+                "fixture": setup.fixture,
+                // The policy interface (sim/src/obs.rs); the goal segment is the nail's head.
                 "observation_layout": graspd_sim::obs::ObservationLayout {
                     keypoints: asset.model().keypoints().len(),
                     latent_dim: planner.latent_dim(),

@@ -16,6 +16,12 @@
 //! | `goal_position` | 3 |
 //! | `goal_orientation_xyzw` | 4 |
 //!
+//! The goal segment per task: Place mug and Position drill, the goal pose
+//! of the tool frame ([`crate::task::PoseEpisode::goal`]); Drive nail, the
+//! top of the nail's head (it sinks as the nail goes in, so the policy sees
+//! the depth) with the nail's axis as orientation (the identity: the nail
+//! stands along world z). One layout serves all three tasks.
+//!
 //! Action, f32:
 //!
 //! | segment | length |

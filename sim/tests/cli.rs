@@ -67,3 +67,20 @@ fn a_task_refuses_another_category_with_a_message() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("mug"), "{}", String::from_utf8_lossy(&out.stderr));
 }
+
+#[test]
+fn nail_json_reports_depth_and_the_fixture() {
+    let v = sim(&["nail", "--instances", "canonical", "--episodes", "1", "--json"]);
+    assert_eq!(v["task"], "drive_nail");
+    assert_eq!(v["category"], "hammer");
+    assert_eq!(v["episodes"], 1);
+    assert_eq!(v["fixture"]["frictionloss_n"], 10.0);
+    let e = &v["results"][0]["episodes"][0];
+    assert_eq!(e["success"], true, "{e}");
+    assert!(e["depth_m"].as_f64().unwrap() > 0.075, "{e}");
+    assert!(e["strikes"].as_u64().unwrap() >= 8, "{e}");
+    let out =
+        std::process::Command::new(env!("CARGO_BIN_EXE_sim")).args(["nail", "--category", "mug"]).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("hammer"));
+}
