@@ -578,7 +578,6 @@ mod tests {
     use super::*;
     use crate::mjcf::PhysicsOptions;
     use crate::scene::{SceneSpec, Table};
-    use graspd::tools;
 
     /// The board and nail alone, the nail pushed down on its head by a
     /// constant force for 1 s: the depth it reaches.
