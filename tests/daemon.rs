@@ -559,10 +559,12 @@ fn a_waiting_client_survives_a_daemon_crash_and_restart() {
 
 #[test]
 fn sigterm_while_busy_finishes_the_requests_in_flight() {
-    let mut d = Daemon::start("sigterm", "workers = 1\nmax_in_flight_per_client = 4");
+    let mut d = Daemon::start("sigterm", "workers = 1\nmax_in_flight_per_client = 16");
     let f = fixture();
     let mut c = d.client();
-    let pending: Vec<_> = (0..3).map(|i| c.start_register("mug", &f.views[i % 2].1, TIMEOUT).unwrap()).collect();
+    // Sixteen requests (about 100 ms of work): three were gone in a few
+    // milliseconds, before a loaded machine let the first Stats call through.
+    let pending: Vec<_> = (0..16).map(|i| c.start_register("mug", &f.views[i % 2].1, TIMEOUT).unwrap()).collect();
     // Busy: one request on the worker, the others queued behind it.
     let t0 = Instant::now();
     while c.stats().unwrap().queued == 0 {

@@ -124,18 +124,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                 Some(other) => return Err(format!("unknown split {other:?} (test or train)").into()),
             };
             let category: Category = category.parse()?;
-            let space = match space {
-                Some(path) => {
-                    let s = graspd::shape::ShapeSpace::load(&path)?;
-                    if s.category != category.name() {
-                        return Err(
-                            format!("{}: a {} space, not {}", path.display(), s.category, category.name()).into()
-                        );
-                    }
-                    s
-                }
-                None => builtin::load_or_build(category, &spaces_dir(), |_, _| {})?,
-            };
+            let space = super::space::load_space(category, space.as_deref())?;
             let registrar = Registrar::new(space);
             let family = tools::family(category)?;
             let opts = TransferEvalOptions {

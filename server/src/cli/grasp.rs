@@ -86,6 +86,10 @@ pub struct EvalGraspArgs {
     /// Solve without the penetration term (keypoints only, as eq. 6 alone).
     #[arg(long)]
     no_penetration: bool,
+    /// A shape-space artefact to evaluate (default: the category's built-in
+    /// space, cached in assets/spaces and built there when missing).
+    #[arg(long)]
+    space: Option<PathBuf>,
     #[arg(long)]
     json: bool,
 }
@@ -417,7 +421,7 @@ pub fn run_eval(a: EvalGraspArgs) -> CliResult {
     let category: Category = a.category.parse()?;
     let hand = HandModel::default_sih()?;
     let demo = load_demo(a.demo.as_ref(), category)?;
-    let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
+    let space = super::space::load_space(category, a.space.as_deref())?;
     let family = tools::family(category)?;
     let canonical = family.iter().find(|i| i.split == Split::Canonical).ok_or("no canonical instance")?;
     let training: Vec<&tools::Instance> = family.iter().filter(|i| i.split == Split::Train).collect();

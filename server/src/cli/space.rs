@@ -1,7 +1,7 @@
 use super::{assets_dir, print_json, progress_bar, CliResult};
 use clap::Subcommand;
 use graspd::shape::builtin;
-use graspd::shape::BuildOptions;
+use graspd::shape::{BuildOptions, ShapeSpace};
 use graspd::tools::Category;
 use std::path::PathBuf;
 
@@ -25,6 +25,24 @@ pub enum SpaceCommand {
 
 pub fn spaces_dir() -> PathBuf {
     assets_dir().join("spaces")
+}
+
+/// The shape space of `category`: the artefact at `path` when given (refused
+/// when it is another category's), else the built-in one (cached, built when missing).
+pub fn load_space(
+    category: Category,
+    path: Option<&std::path::Path>,
+) -> Result<ShapeSpace, Box<dyn std::error::Error>> {
+    match path {
+        Some(path) => {
+            let s = ShapeSpace::load(path)?;
+            if s.category != category.name() {
+                return Err(format!("{}: a {} space, not {}", path.display(), s.category, category.name()).into());
+            }
+            Ok(s)
+        }
+        None => Ok(builtin::load_or_build(category, &spaces_dir(), |_, _| {})?),
+    }
 }
 
 pub fn run(cmd: SpaceCommand) -> CliResult {
