@@ -11,7 +11,9 @@
 //! (MuJoCo's own arrays are (w, x, y, z); conversions happen at this crate's
 //! edges).
 
+pub mod camera;
 pub mod carry;
+pub mod daemon;
 pub mod engine;
 pub mod episode;
 pub mod hand;
