@@ -1,8 +1,11 @@
 //! What the scripted task episodes (Place mug, Position drill, Drive nail)
 //! share, so that each task's module holds only its own path and rules:
 //!
-//! - [`TaskRig`]: a tool's grasp plan, its scene (built once, episodes reset
-//!   it) and the points sampled on its mesh for the lift term;
+//! - [`TaskRig`]: a tool's scene (built once, episodes reset it), its
+//!   in-process grasp plan (made once; a daemon's grasps are asked for per
+//!   episode, from the camera's view of the tool where it starts: see
+//!   [`TaskRig::episode_plan`]) and the points sampled on its mesh for the
+//!   lift term;
 //! - [`CarryController`]: the lift script, then a wrist command that moves
 //!   the *held tool* along a desired tool pose. The command is the desired
 //!   tool motion (since the lift ended) applied to the lifted wrist command,
@@ -28,7 +31,7 @@ use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
 use crate::engine::SimError;
 use crate::episode::{reset_to_pregrasp, squeezed, substeps, LiftController, LiftScript, LiftSetup};
 use crate::hand::{HandAsset, HandIndex};
-use crate::plan::{GraspPlan, GraspPlanner};
+use crate::plan::{neutral_wrist, GraspFrom, GraspInfo, GraspPlan, GraspPlanner};
 use crate::scene::{Scene, SceneSpec, Table, ToolIndex};
 use crate::task::GraspState;
 use crate::tool::ToolBody;
@@ -156,10 +159,12 @@ pub fn clearance(points: &[Point3<f64>], pose: &Isometry3<f64>, table_z: f64) ->
     points.iter().map(|p| (pose * p).z).fold(f64::INFINITY, f64::min) - table_z
 }
 
-/// One tool's plan and scene, ready for episodes.
+/// One tool's scene and in-process plan, ready for episodes.
 pub struct TaskRig {
-    /// The plan with the tool frame at the world origin (carried to each episode's start).
-    pub plan: GraspPlan,
+    /// The in-process plan with the tool frame at the world origin (carried
+    /// to each episode's start); `None` when grasps come from the daemon.
+    pub plan: Option<GraspPlan>,
+    pub instance: Instance,
     pub scene: Scene,
     pub data: MjData<Arc<MjModel>>,
     /// Points on the tool's mesh, tool frame (the lift term's height).
@@ -168,10 +173,12 @@ pub struct TaskRig {
 }
 
 impl TaskRig {
-    /// Plans the grasp of `instance`, builds its body and a scene named
-    /// `{task}_{instance}` with the table, the tool, the hand at the
-    /// pre-grasp and `extra_bodies` (MJCF worldbody elements, e.g. a board)
-    /// with `extra_contact` (contact pairs and exclusions).
+    /// Plans the grasp of `instance` (in-process planners), builds its body
+    /// and a scene named `{task}_{instance}` with the table, the tool, the
+    /// hand (at the pre-grasp, or at the neutral pose when grasps come from
+    /// the daemon; every episode resets it) and `extra_bodies` (MJCF
+    /// worldbody elements, e.g. a board) with `extra_contact` (contact pairs
+    /// and exclusions).
     pub fn build(
         asset: &HandAsset,
         planner: &mut GraspPlanner,
@@ -181,7 +188,10 @@ impl TaskRig {
         extra_bodies: Vec<String>,
         extra_contact: Vec<String>,
     ) -> Result<Self, SimError> {
-        let plan = planner.plan(instance)?;
+        let plan = match planner.grasp_from() {
+            GraspFrom::InProcess => Some(planner.plan(instance)?),
+            GraspFrom::Daemon => None,
+        };
         let tool = ToolBody::from_instance(instance, &base.decomposition)?;
         let height_points = sample_points(&instance.mesh, HEIGHT_POINTS, HEIGHT_POINTS_SEED)
             .map_err(|e| SimError::Tool { reason: format!("sampling the tool's surface: {e}") })?;
@@ -191,13 +201,30 @@ impl TaskRig {
             physics: base.physics.clone(),
             table: Some(table.clone()),
             tools: vec![(&tool, Isometry3::identity())],
-            hand: Some((asset, base.hand.clone(), plan.pregrasp.wrist_pose_world)),
+            hand: Some((
+                asset,
+                base.hand.clone(),
+                plan.as_ref().map_or_else(|| neutral_wrist(table.top_z), |p| p.pregrasp.wrist_pose_world),
+            )),
             extra_bodies,
             extra_contact,
         };
         let scene = spec.build()?;
         let data = MjData::new(scene.model.clone());
-        Ok(Self { plan, scene, data, height_points, table })
+        Ok(Self { plan, instance: instance.clone(), scene, data, height_points, table })
+    }
+
+    /// The plan of an episode whose tool starts at `tool_start` (the tool
+    /// frame at the world origin, as [`Self::plan`]): the in-process plan,
+    /// or the daemon's grasp of the camera's view (seeded by `seed`), with
+    /// the planner's start mode applied; and how it was obtained.
+    pub fn episode_plan(
+        &self,
+        planner: &mut GraspPlanner,
+        tool_start: &Isometry3<f64>,
+        seed: u64,
+    ) -> Result<(GraspPlan, GraspInfo), SimError> {
+        planner.episode_plan(&self.instance, self.plan.as_ref(), tool_start, self.table.top_z, seed)
     }
 }
 
@@ -218,7 +245,7 @@ pub struct EpisodeStepper<'a> {
 
 impl<'a> EpisodeStepper<'a> {
     /// Resets `data` to the episode's start: the tool at `tool_start`, the
-    /// hand at the pre-grasp of `plan` (already carried to `tool_start`).
+    /// hand at the start of `plan` (already carried to `tool_start`).
     pub fn start<M: ModelType>(
         scene: &'a Scene,
         data: &mut MjData<M>,

@@ -3,6 +3,12 @@
 //! scripted controller; moving to a goal pose comes with the tasks).
 //!
 //! At the 30 Hz control rate, from the pre-grasp:
+//! 0. reach, only when the hand starts elsewhere (the neutral start, w/o PG:
+//!    [`crate::plan::HandStart::Fixed`]): the wrist moves in a straight line
+//!    to a stand-off on the pre-grasp's line ([`LiftScript::reach_standoff_m`]
+//!    further back than the pre-grasp), the joints from where they are to
+//!    the pre-grasp's; the approach then starts there, so the hand comes in
+//!    along the pre-grasp direction through the pre-grasp;
 //! 1. approach: the wrist moves in a straight line to the grasp's wrist pose,
 //!    joints held at the pre-grasp's;
 //! 2. close: the joint targets ramp to the grasp's joints plus a squeeze
@@ -32,8 +38,7 @@ use serde::Serialize;
 use crate::engine::SimError;
 use crate::hand::{HandAsset, HandMjcfOptions};
 use crate::mjcf::PhysicsOptions;
-use crate::plan::GraspPlan;
-use crate::plan::GraspPlanner;
+use crate::plan::{GraspPlan, GraspPlanner, HandStart};
 use crate::scene::Scene;
 use crate::scene::{SceneSpec, Table};
 use crate::tool::{DecompositionOptions, ToolBody};
@@ -56,11 +61,27 @@ pub struct LiftScript {
     pub hold_s: f64,
     /// Extra closing commanded beyond the grasp's joints, radians.
     pub squeeze_rad: f64,
+    /// The reach from a fixed start (module docs), seconds; 0 s when the hand starts at the pre-grasp.
+    pub reach_s: f64,
+    /// How much further back than the pre-grasp the reach ends, along the
+    /// pre-grasp's line, metres (the approach then passes through the pre-grasp).
+    pub reach_standoff_m: f64,
 }
 
 impl Default for LiftScript {
     fn default() -> Self {
-        Self { approach_s: 1.0, close_s: 0.8, settle_s: 0.3, lift_s: 1.0, lift_m: 0.10, hold_s: 2.0, squeeze_rad: 0.3 }
+        Self {
+            approach_s: 1.0,
+            close_s: 0.8,
+            settle_s: 0.3,
+            lift_s: 1.0,
+            lift_m: 0.10,
+            hold_s: 2.0,
+            squeeze_rad: 0.3,
+            // 1 s fits the task scripts in the 10 s episode (Place mug's retreat ends at 10.0 s).
+            reach_s: 1.0,
+            reach_standoff_m: 0.05,
+        }
     }
 }
 
@@ -127,11 +148,16 @@ pub fn squeezed(hand: &HandModel, grasp: &Grasp, squeeze_rad: f64) -> Vec<f64> {
 /// instant of the episode (no state, so many environments can share one).
 #[derive(Clone, Debug)]
 pub struct LiftController {
-    pre_wrist: Isometry3<f64>,
+    /// The fixed start (wrist, joints) when the hand does not start at the pre-grasp.
+    reach_from: Option<(Isometry3<f64>, Vec<f64>)>,
+    /// Where the approach starts: the pre-grasp, or the stand-off behind it after a reach.
+    approach_from: Isometry3<f64>,
     grasp_wrist: Isometry3<f64>,
     lifted_wrist: Isometry3<f64>,
     q_pre: Vec<f64>,
     q_squeeze: Vec<f64>,
+    /// Length of the reach (0 s without one); the other phases start after it.
+    reach_s: f64,
     /// End times of approach, close, settle, lift, hold.
     ends: [f64; 5],
     script: LiftScript,
@@ -139,13 +165,27 @@ pub struct LiftController {
 
 impl LiftController {
     pub fn new(hand: &HandModel, plan: &GraspPlan, script: &LiftScript) -> Self {
+        let grasp_wrist = plan.grasp.wrist_pose_world;
+        let pre_wrist = plan.pregrasp.wrist_pose_world;
+        let (reach_from, approach_from, reach_s) = match &plan.start {
+            HandStart::PreGrasp => (None, pre_wrist, 0.0),
+            HandStart::Fixed { wrist_world, actuated } => {
+                // Further out along the line from the grasp through the pre-grasp.
+                let back = pre_wrist.translation.vector - grasp_wrist.translation.vector;
+                let dir = back.try_normalize(1e-9).unwrap_or_else(Vector3::z);
+                let standoff = Translation3::from(script.reach_standoff_m * dir) * pre_wrist;
+                (Some((*wrist_world, actuated.clone())), standoff, script.reach_s.max(0.0))
+            }
+        };
         let mut ends = [script.approach_s, script.close_s, script.settle_s, script.lift_s, script.hold_s];
+        ends[0] += reach_s;
         for k in 1..ends.len() {
             ends[k] += ends[k - 1];
         }
-        let grasp_wrist = plan.grasp.wrist_pose_world;
         Self {
-            pre_wrist: plan.pregrasp.wrist_pose_world,
+            reach_from,
+            approach_from,
+            reach_s,
             grasp_wrist,
             lifted_wrist: Translation3::new(0.0, 0.0, script.lift_m) * grasp_wrist,
             q_pre: plan.pregrasp.actuated.clone(),
@@ -177,9 +217,18 @@ impl LiftController {
     pub fn targets(&self, t: f64, q: &mut [f64]) -> Isometry3<f64> {
         let [approach, close, settle, lift, _] = self.ends;
         let sc = &self.script;
+        if let Some((from, q_from)) = &self.reach_from {
+            if t <= self.reach_s {
+                let s = ease(t / self.reach_s);
+                for ((q, a), b) in q.iter_mut().zip(q_from).zip(&self.q_pre) {
+                    *q = a + s * (b - a);
+                }
+                return lerp_pose(from, &self.approach_from, s);
+            }
+        }
         if t <= approach {
             q.copy_from_slice(&self.q_pre);
-            lerp_pose(&self.pre_wrist, &self.grasp_wrist, ease(t / sc.approach_s))
+            lerp_pose(&self.approach_from, &self.grasp_wrist, ease((t - self.reach_s) / sc.approach_s))
         } else if t <= close {
             let s = ease((t - approach) / sc.close_s);
             for ((q, a), b) in q.iter_mut().zip(&self.q_pre).zip(&self.q_squeeze) {
@@ -200,7 +249,8 @@ impl LiftController {
 }
 
 /// Puts the scene at the episode's start: the tool at `tool_pose`, the hand
-/// at the plan's pre-grasp, everything at rest.
+/// at the plan's start (its pre-grasp unless the plan says otherwise),
+/// everything at rest.
 pub fn reset_to_pregrasp<M: ModelType>(
     scene: &Scene,
     data: &mut MjData<M>,
@@ -212,7 +262,8 @@ pub fn reset_to_pregrasp<M: ModelType>(
     let tool = scene.tools.first().ok_or(SimError::MissingElement { kind: "tool", name: "tool".into() })?;
     data.reset();
     tool.set_pose(data, tool_pose);
-    hand.set_configuration(data, hand_model, &plan.pregrasp.wrist_pose_world, &plan.pregrasp.actuated);
+    let (wrist, q) = plan.start_configuration();
+    hand.set_configuration(data, hand_model, &wrist, q);
     data.forward();
     Ok(())
 }

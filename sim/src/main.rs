@@ -63,14 +63,38 @@ struct BenchArgs {
     json: bool,
 }
 
+/// Where a task's grasps come from and where its hand starts (sim/src/plan.rs).
+#[derive(clap::Args)]
+struct GraspArgs {
+    /// `inprocess` (graspd's engine in this process, the tool's training
+    /// latent) or `daemon` (a running `graspd serve`, from the scene
+    /// camera's view of the tool; needed for test instances).
+    #[arg(long, default_value = "inprocess")]
+    grasp_from: String,
+    /// `pregrasp` (the generalised grasp's pre-grasp), `canonical` (w/o GG:
+    /// the demonstration carried by the tool's pose) or `neutral` (w/o PG:
+    /// the open hand above the table, the script reaches the grasp).
+    #[arg(long, default_value = "pregrasp")]
+    start: String,
+    /// The daemon's service prefix (its configuration's `service_prefix`).
+    #[arg(long, default_value = "graspd")]
+    daemon_prefix: String,
+    /// Deadline of one Grasp call to the daemon, ms.
+    #[arg(long, default_value_t = 10_000)]
+    daemon_timeout_ms: u64,
+}
+
 #[derive(clap::Args)]
 struct NailArgs {
     /// The task's category (hammer), the only one it takes.
     #[arg(long, default_value = "hammer")]
     category: String,
-    /// `canonical`, `train`, `all` (canonical and train) or one instance name.
+    /// `canonical`, `train`, `all` (canonical and train), `test` (with
+    /// `--grasp-from daemon`) or one instance name.
     #[arg(long, default_value = "all")]
     instances: String,
+    #[command(flatten)]
+    grasp: GraspArgs,
     /// Episodes per instance (random hammer start, seeds `seed`, `seed + 1`, ...).
     #[arg(long, default_value_t = 5)]
     episodes: usize,
@@ -107,9 +131,12 @@ struct PoseTaskArgs {
     /// The task's category (place: mug; position: drill), the only one it takes.
     #[arg(long)]
     category: Option<String>,
-    /// `canonical`, `train`, `all` (canonical and train) or one instance name.
+    /// `canonical`, `train`, `all` (canonical and train), `test` (with
+    /// `--grasp-from daemon`) or one instance name.
     #[arg(long, default_value = "all")]
     instances: String,
+    #[command(flatten)]
+    grasp: GraspArgs,
     /// Episodes per instance (random start and goal, seeds `seed`, `seed + 1`, ...).
     #[arg(long, default_value_t = 5)]
     episodes: usize,
@@ -197,15 +224,98 @@ fn choose_instances<'a>(
     Ok(match which {
         "canonical" => family.iter().filter(|i| i.split == Split::Canonical).collect(),
         "train" => family.iter().filter(|i| i.split == Split::Train).collect(),
+        "test" => family.iter().filter(|i| i.split == Split::Test).collect(),
         "all" => family.iter().filter(|i| i.split != Split::Test).collect(),
         name => {
             let found: Vec<_> = family.iter().filter(|i| i.name == name).collect();
             if found.is_empty() {
-                return Err(format!("no {category} instance `{name}` (canonical, train, all, or a name)").into());
+                return Err(format!("no {category} instance `{name}` (canonical, train, test, all, or a name)").into());
             }
             found
         }
     })
+}
+
+/// The grasp planner the grasp arguments ask for: in-process, or connected
+/// to the daemon (an error naming the prefix when none serves it).
+fn make_planner(
+    asset: &graspd_sim::hand::HandAsset,
+    category: graspd::tools::Category,
+    seed: u64,
+    a: &GraspArgs,
+) -> Result<graspd_sim::plan::GraspPlanner, Box<dyn std::error::Error>> {
+    use graspd_sim::plan::{GraspFrom, GraspPlanner, StartMode};
+    let from: GraspFrom = a.grasp_from.parse()?;
+    let start: StartMode = a.start.parse()?;
+    let planner = GraspPlanner::new(asset.model(), category, seed)?.with_start(start);
+    Ok(match from {
+        GraspFrom::InProcess => planner,
+        GraspFrom::Daemon => {
+            let options = graspd_sim::daemon::DaemonOptions {
+                prefix: a.daemon_prefix.clone(),
+                timeout: std::time::Duration::from_millis(a.daemon_timeout_ms),
+                ..Default::default()
+            };
+            let daemon = graspd_sim::daemon::DaemonGrasper::connect(
+                options,
+                category,
+                planner.latent_dim(),
+                graspd_sim::camera::SceneCamera::default(),
+                graspd_sim::camera::LabFrame::default(),
+            )?;
+            planner.with_daemon(daemon)
+        }
+    })
+}
+
+/// Median of the finite values (NaN when none).
+fn median(mut v: Vec<f64>) -> f64 {
+    v.retain(|x| x.is_finite());
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// One row of the per-tool summary table.
+struct SummaryRow {
+    tool: String,
+    split: &'static str,
+    grasp_from: &'static str,
+    source: &'static str,
+    start: &'static str,
+    successes: usize,
+    episodes: usize,
+    /// The task's final error(s), already in words (e.g. "d 8.1 mm  θ 0.031 rad").
+    errors: String,
+    latency_ms: f64,
+}
+
+/// The summary table of a run, one row per tool (medians over its episodes).
+fn print_summary(rows: &[SummaryRow]) {
+    println!(
+        "{:<18} {:<9} {:<9} {:<13} {:<9} {:>9}  {:<32} {:>11}",
+        "tool", "split", "grasp", "source", "start", "success", "final error (median)", "grasp ms"
+    );
+    for r in rows {
+        println!(
+            "{:<18} {:<9} {:<9} {:<13} {:<9} {:>9}  {:<32} {:>11}",
+            r.tool,
+            r.split,
+            r.grasp_from,
+            r.source,
+            r.start,
+            format!("{}/{}", r.successes, r.episodes),
+            r.errors,
+            if r.latency_ms.is_finite() { format!("{:.1}", r.latency_ms) } else { "-".to_owned() }
+        );
+    }
 }
 
 #[derive(Clone, Copy, PartialEq)]
@@ -233,7 +343,7 @@ fn run_pose_task(a: PoseTaskArgs, task: PoseTask) -> Result<(), Box<dyn std::err
     let family = tools::family(category)?;
     let chosen = choose_instances(&family, category, &a.instances)?;
     let asset = graspd_sim::hand::HandAsset::default_sih()?;
-    let mut planner = graspd_sim::plan::GraspPlanner::new(asset.model(), category, a.seed)?;
+    let mut planner = make_planner(&asset, category, a.seed, &a.grasp)?;
     let mut place = PlaceSetup::default();
     let mut position = DrillSetup::default();
     if let Some(n) = a.noslip_iterations {
@@ -245,9 +355,10 @@ fn run_pose_task(a: PoseTaskArgs, task: PoseTask) -> Result<(), Box<dyn std::err
         PoseTask::PositionDrill => serde_json::to_value(&position.ranges)?,
     };
     let mut rows = Vec::new();
+    let mut summary = Vec::new();
     let (mut successes, mut total) = (0usize, 0usize);
     for inst in chosen {
-        let (plan, outs) = match task {
+        let outs = match task {
             PoseTask::PlaceMug => place_instance(&asset, &mut planner, inst, &place, a.seed, a.episodes)?,
             PoseTask::PositionDrill => position_instance(&asset, &mut planner, inst, &position, a.seed, a.episodes)?,
         };
@@ -257,7 +368,7 @@ fn run_pose_task(a: PoseTaskArgs, task: PoseTask) -> Result<(), Box<dyn std::err
         if !a.json {
             for o in &outs {
                 println!(
-                    "{:<18} seed {:<4} success {:<5} d {:6.1} mm  θ {:5.3} rad  first reached {:>6}  lift clear {:6.1} mm  return {:8.1}{}",
+                    "{:<18} seed {:<4} success {:<5} d {:6.1} mm  θ {:5.3} rad  first reached {:>6}  lift clear {:6.1} mm  return {:8.1}  grasp {}{}{}",
                     inst.name,
                     o.seed,
                     o.success,
@@ -266,14 +377,34 @@ fn run_pose_task(a: PoseTaskArgs, task: PoseTask) -> Result<(), Box<dyn std::err
                     o.first_reached_s.map_or("-".to_owned(), |t| format!("{t:.2} s")),
                     1e3 * o.clearance_after_lift_m,
                     o.episode_return,
+                    o.grasp.source,
+                    o.grasp.latency_ms.map_or(String::new(), |ms| format!(" {ms:.1} ms")),
                     if o.warnings.is_empty() { String::new() } else { format!("  warnings: {}", o.warnings.join(", ")) }
                 );
             }
         }
+        let first = outs.first().map(|o| o.grasp.clone()).unwrap_or_default();
+        summary.push(SummaryRow {
+            tool: inst.name.clone(),
+            split: inst.split.name(),
+            grasp_from: first.grasp_from,
+            source: first.source,
+            start: first.start,
+            successes: ok,
+            episodes: outs.len(),
+            errors: format!(
+                "d {:.1} mm  θ {:.3} rad",
+                1e3 * median(outs.iter().map(|o| o.final_distance_m).collect()),
+                median(outs.iter().map(|o| o.final_angle_rad).collect())
+            ),
+            latency_ms: median(outs.iter().filter_map(|o| o.grasp.latency_ms).collect()),
+        });
         rows.push(serde_json::json!({
             "instance": inst.name,
             "split": inst.split.name(),
-            "grasp_source": plan.source,
+            "grasp_from": first.grasp_from,
+            "grasp_source": first.source,
+            "start": first.start,
             "successes": ok,
             "episodes": outs,
         }));
@@ -284,6 +415,8 @@ fn run_pose_task(a: PoseTaskArgs, task: PoseTask) -> Result<(), Box<dyn std::err
             serde_json::to_string_pretty(&serde_json::json!({
                 "category": category.name(),
                 "task": task_name,
+                "grasp_from": planner.grasp_from(),
+                "start": planner.start_mode(),
                 "ranges": ranges,
                 // The policy interface these episodes would be driven through (sim/src/obs.rs).
                 "observation_layout": graspd_sim::obs::ObservationLayout {
@@ -299,6 +432,7 @@ fn run_pose_task(a: PoseTaskArgs, task: PoseTask) -> Result<(), Box<dyn std::err
             }))?
         );
     } else {
+        print_summary(&summary);
         println!("success {successes} of {total}");
     }
     Ok(())
@@ -314,7 +448,7 @@ fn run_nail(a: NailArgs) -> Result<(), Box<dyn std::error::Error>> {
     let family = tools::family(category)?;
     let chosen = choose_instances(&family, category, &a.instances)?;
     let asset = graspd_sim::hand::HandAsset::default_sih()?;
-    let mut planner = graspd_sim::plan::GraspPlanner::new(asset.model(), category, a.seed)?;
+    let mut planner = make_planner(&asset, category, a.seed, &a.grasp)?;
     let mut setup = NailSetup::default();
     if let Some(n) = a.noslip_iterations {
         setup.base.physics.noslip_iterations = n;
@@ -338,16 +472,17 @@ fn run_nail(a: NailArgs) -> Result<(), Box<dyn std::error::Error>> {
         setup.script.lift.squeeze_rad = v;
     }
     let mut rows = Vec::new();
+    let mut summary = Vec::new();
     let (mut successes, mut total) = (0usize, 0usize);
     for inst in chosen {
-        let (plan, outs) = nail_instance(&asset, &mut planner, inst, &setup, a.seed, a.episodes)?;
+        let outs = nail_instance(&asset, &mut planner, inst, &setup, a.seed, a.episodes)?;
         let ok = outs.iter().filter(|o| o.success).count();
         successes += ok;
         total += outs.len();
         if !a.json {
             for o in &outs {
                 println!(
-                    "{:<18} seed {:<4} success {:<5} depth {:5.1} mm  strikes {:2}  first driven {:>6}  lift clear {:6.1} mm  aim {:5.1} mm  held {:<5}  return {:8.1}{}",
+                    "{:<18} seed {:<4} success {:<5} depth {:5.1} mm  strikes {:2}  first driven {:>6}  lift clear {:6.1} mm  aim {:5.1} mm  held {:<5}  return {:8.1}  grasp {}{}{}",
                     inst.name,
                     o.seed,
                     o.success,
@@ -358,14 +493,30 @@ fn run_nail(a: NailArgs) -> Result<(), Box<dyn std::error::Error>> {
                     1e3 * o.face_distance_at_first_strike_m,
                     o.held_at_end,
                     o.episode_return,
+                    o.grasp.source,
+                    o.grasp.latency_ms.map_or(String::new(), |ms| format!(" {ms:.1} ms")),
                     if o.warnings.is_empty() { String::new() } else { format!("  warnings: {}", o.warnings.join(", ")) }
                 );
             }
         }
+        let first = outs.first().map(|o| o.grasp.clone()).unwrap_or_default();
+        summary.push(SummaryRow {
+            tool: inst.name.clone(),
+            split: inst.split.name(),
+            grasp_from: first.grasp_from,
+            source: first.source,
+            start: first.start,
+            successes: ok,
+            episodes: outs.len(),
+            errors: format!("depth {:.1} mm", 1e3 * median(outs.iter().map(|o| o.depth_m).collect())),
+            latency_ms: median(outs.iter().filter_map(|o| o.grasp.latency_ms).collect()),
+        });
         rows.push(serde_json::json!({
             "instance": inst.name,
             "split": inst.split.name(),
-            "grasp_source": plan.source,
+            "grasp_from": first.grasp_from,
+            "grasp_source": first.source,
+            "start": first.start,
             "successes": ok,
             "episodes": outs,
         }));
@@ -376,6 +527,8 @@ fn run_nail(a: NailArgs) -> Result<(), Box<dyn std::error::Error>> {
             serde_json::to_string_pretty(&serde_json::json!({
                 "category": category.name(),
                 "task": "drive_nail",
+                "grasp_from": planner.grasp_from(),
+                "start": planner.start_mode(),
                 "ranges": setup.ranges,
                 "fixture": setup.fixture,
                 // The policy interface (sim/src/obs.rs); the goal segment is the nail's head.
@@ -392,6 +545,7 @@ fn run_nail(a: NailArgs) -> Result<(), Box<dyn std::error::Error>> {
             }))?
         );
     } else {
+        print_summary(&summary);
         println!("success {successes} of {total}");
     }
     Ok(())

@@ -45,7 +45,7 @@ use crate::engine::SimError;
 use crate::episode::{ease, lerp_pose, warnings, LiftScript, LiftSetup};
 use crate::hand::{body_pose, HandAsset};
 use crate::mjcf::{num, nums, vec3, WORLD_CONAFFINITY, WORLD_CONTYPE};
-use crate::plan::{GraspPlan, GraspPlanner};
+use crate::plan::{GraspInfo, GraspPlan, GraspPlanner};
 use crate::scene::Scene;
 use crate::task::{self, nail_reward, NailEpisode, NailRanges, NailReward, NailState};
 
@@ -412,6 +412,8 @@ pub struct NailOutcome {
     pub control_steps: usize,
     pub physics_us_per_step: f64,
     pub warnings: Vec<String>,
+    /// Where the grasp came from, the start mode, the daemon's round trip.
+    pub grasp: GraspInfo,
 }
 
 /// The striking face's centre in the hammer's frame (its `head_face` keypoint).
@@ -516,6 +518,7 @@ pub fn run_nail<M: ModelType>(
         control_steps: n_control,
         physics_us_per_step: stepper.physics_us_per_step(),
         warnings: warnings(data),
+        grasp: GraspInfo::default(),
     })
 }
 
@@ -528,8 +531,9 @@ pub struct NailSetup {
     pub fixture: NailFixture,
 }
 
-/// Plans the grasp of one hammer, builds its scene (table, board and nail,
-/// hammer, hand) once and runs `episodes` episodes (seeds `first_seed`, ...).
+/// Builds one hammer's scene (table, board and nail, hammer, hand) once and
+/// runs `episodes` episodes (seeds `first_seed`, ...), each with the
+/// planner's grasp for the hammer where it starts.
 pub fn nail_instance(
     asset: &HandAsset,
     planner: &mut GraspPlanner,
@@ -537,7 +541,7 @@ pub fn nail_instance(
     setup: &NailSetup,
     first_seed: u64,
     episodes: usize,
-) -> Result<(GraspPlan, Vec<NailOutcome>), SimError> {
+) -> Result<Vec<NailOutcome>, SimError> {
     if instance.category != Category::Hammer {
         return Err(SimError::Config {
             reason: format!("Drive nail takes a hammer, not `{}` ({})", instance.name, instance.category),
@@ -559,20 +563,24 @@ pub fn nail_instance(
     )?;
     let mut out = Vec::with_capacity(episodes);
     for e in 0..episodes as u64 {
-        let episode = setup.ranges.sample(first_seed.wrapping_add(e), rig.table.top_z);
-        out.push(run_nail(
+        let seed = first_seed.wrapping_add(e);
+        let episode = setup.ranges.sample(seed, rig.table.top_z);
+        let (plan, info) = rig.episode_plan(planner, &episode.start, seed)?;
+        let mut o = run_nail(
             &rig.scene,
             &mut rig.data,
             asset.model(),
-            &rig.plan,
+            &plan,
             &rig.height_points,
             &face,
             &episode,
             &setup.script,
             setup.base.physics.control_hz,
-        )?);
+        )?;
+        o.grasp = info;
+        out.push(o);
     }
-    Ok((rig.plan, out))
+    Ok(out)
 }
 
 #[cfg(test)]
@@ -645,7 +653,7 @@ mod episode_tests {
     #[test]
     fn the_scripted_controller_drives_the_nail_with_the_canonical_hammer() {
         let (asset, mut planner, hammer) = canonical();
-        let (_, outs) = nail_instance(&asset, &mut planner, &hammer, &NailSetup::default(), 0, 1).unwrap();
+        let outs = nail_instance(&asset, &mut planner, &hammer, &NailSetup::default(), 0, 1).unwrap();
         let o = &outs[0];
         assert!(o.clearance_after_lift_m > 0.03, "{o:?}");
         assert!(o.face_distance_at_first_strike_m < 0.005, "{o:?}");
@@ -675,15 +683,15 @@ mod episode_tests {
             NailFixture::contact(),
         )
         .unwrap();
-        rig.plan.grasp.actuated = hand.open_hand().to_vec();
-        rig.plan.pregrasp.actuated = hand.open_hand().to_vec();
+        let mut plan = rig.plan.clone().unwrap();
+        plan.grasp.actuated = hand.open_hand().to_vec();
+        plan.pregrasp.actuated = hand.open_hand().to_vec();
         let mut script = setup.script.clone();
         script.lift.squeeze_rad = 0.0;
         let face = face_of(&hammer).unwrap();
         let episode = setup.ranges.sample(0, 0.0);
-        let o =
-            run_nail(&rig.scene, &mut rig.data, hand, &rig.plan, &rig.height_points, &face, &episode, &script, 30.0)
-                .unwrap();
+        let o = run_nail(&rig.scene, &mut rig.data, hand, &plan, &rig.height_points, &face, &episode, &script, 30.0)
+            .unwrap();
         assert!(o.clearance_after_lift_m < 0.01, "{o:?}");
         assert!(!o.success && o.depth_m < 0.002, "{o:?}");
         assert!(o.return_terms.depth < 0.2, "{o:?}");

@@ -24,7 +24,7 @@ use crate::carry::{CarryController, EpisodeStepper, Steering, TaskRig};
 use crate::engine::SimError;
 use crate::episode::{ease, lerp_pose, warnings, LiftScript, LiftSetup};
 use crate::hand::HandAsset;
-use crate::plan::{GraspPlan, GraspPlanner};
+use crate::plan::{GraspInfo, GraspPlan, GraspPlanner};
 use crate::scene::Scene;
 use crate::task::{self, pose_reward, PlaceRanges, PoseEpisode, PoseReward, PoseState};
 
@@ -175,6 +175,8 @@ pub struct PoseOutcome {
     pub control_steps: usize,
     pub physics_us_per_step: f64,
     pub warnings: Vec<String>,
+    /// Where the grasp came from, the start mode, the daemon's round trip.
+    pub grasp: GraspInfo,
 }
 
 /// A scripted controller of a goal-pose task.
@@ -264,6 +266,7 @@ pub fn run_pose_episode<M: ModelType, C: PoseController>(
         control_steps: n_control,
         physics_us_per_step: stepper.physics_us_per_step(),
         warnings: warnings(data),
+        grasp: GraspInfo::default(),
     })
 }
 
@@ -293,8 +296,9 @@ pub struct PlaceSetup {
     pub ranges: PlaceRanges,
 }
 
-/// Plans the grasp of one instance, builds its scene once and runs
-/// `episodes` episodes (seeds `first_seed`, `first_seed + 1`, ...).
+/// Builds one instance's scene once and runs `episodes` episodes (seeds
+/// `first_seed`, `first_seed + 1`, ...), each with the planner's grasp for
+/// the mug where it starts.
 pub fn place_instance(
     asset: &HandAsset,
     planner: &mut GraspPlanner,
@@ -302,24 +306,28 @@ pub fn place_instance(
     setup: &PlaceSetup,
     first_seed: u64,
     episodes: usize,
-) -> Result<(GraspPlan, Vec<PoseOutcome>), SimError> {
+) -> Result<Vec<PoseOutcome>, SimError> {
     setup.ranges.validate()?;
     let mut rig = TaskRig::build(asset, planner, instance, &setup.base, "place", Vec::new(), Vec::new())?;
     let mut out = Vec::with_capacity(episodes);
     for e in 0..episodes as u64 {
-        let episode = setup.ranges.sample(first_seed.wrapping_add(e), rig.table.top_z);
-        out.push(run_place(
+        let seed = first_seed.wrapping_add(e);
+        let episode = setup.ranges.sample(seed, rig.table.top_z);
+        let (plan, info) = rig.episode_plan(planner, &episode.start, seed)?;
+        let mut o = run_place(
             &rig.scene,
             &mut rig.data,
             asset.model(),
-            &rig.plan,
+            &plan,
             &rig.height_points,
             &episode,
             &setup.script,
             setup.base.physics.control_hz,
-        )?);
+        )?;
+        o.grasp = info;
+        out.push(o);
     }
-    Ok((rig.plan, out))
+    Ok(out)
 }
 
 #[cfg(test)]
@@ -344,7 +352,7 @@ mod tests {
     #[test]
     fn the_scripted_controller_places_the_canonical_mug() {
         let (asset, mut planner, mug) = canonical_setup();
-        let (_, outs) = place_instance(&asset, &mut planner, &mug, &PlaceSetup::default(), 100, 3).unwrap();
+        let outs = place_instance(&asset, &mut planner, &mug, &PlaceSetup::default(), 100, 3).unwrap();
         for o in &outs {
             assert!(o.success, "{o:?}");
             assert!(o.clearance_after_lift_m > 0.05, "{o:?}");

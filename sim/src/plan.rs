@@ -1,31 +1,142 @@
-//! Grasps and pre-grasps for simulated tools, from graspd's engine in-process
-//! (the daemon client comes later; the numbers are the same library's):
+//! Grasps and pre-grasps for simulated tools, and where an episode's hand
+//! starts.
 //!
-//! - the canonical tool: the demonstrated grasp itself (the demonstration
-//!   was authored on it), its pre-grasp checked against the canonical mesh;
-//! - a training tool: the demonstration transferred through the tool's
-//!   latent in the category's shape space (its registered shape at the
-//!   canonical pose), solved and backed off, exactly as `graspd eval grasp`
-//!   (paper Table I) does.
+//! Where the grasp comes from ([`GraspFrom`]):
 //!
-//! Both are computed with the tool at its canonical pose on a table at z = 0
-//! and carried to the tool's pose in the scene (a rigid motion moves the
-//! grasp with the tool).
+//! - `inprocess` (the default): graspd's engine in this process, once per
+//!   tool, with the tool at its canonical pose on a table at z = 0, carried
+//!   to each episode's start (a rigid motion moves the grasp with the tool):
+//!   - the canonical tool: the demonstrated grasp itself (the demonstration
+//!     was authored on it), its pre-grasp checked against the canonical mesh;
+//!   - a training tool: the demonstration transferred through the tool's
+//!     latent in the category's shape space (its registered shape at the
+//!     canonical pose), solved and backed off, exactly as `graspd eval grasp`
+//!     (paper Table I) does. Test tools have no latent: they need the daemon;
+//! - `daemon`: a running `graspd serve`, per episode, from the scene depth
+//!   camera's view of the tool where it stands ([`crate::daemon`]): any tool
+//!   of the family, test tools included (paper Table III).
+//!
+//! Where the hand starts ([`StartMode`], the paper's ablations, Table II):
+//!
+//! - `pregrasp`: at the generalised grasp's pre-grasp (the default);
+//! - `canonical` (w/o GG): the canonical demonstration's grasp carried by
+//!   the tool's pose (the true pose in-process; the daemon's registered pose,
+//!   scale included, from the daemon), no shape-space transfer; its
+//!   pre-grasp backed off in-process the same way;
+//! - `neutral` (w/o PG): the open hand at [`neutral_wrist`], above the
+//!   table; the script reaches the pre-grasp's line itself
+//!   ([`crate::episode::LiftScript::reach_s`]).
+//!
+//! The keypoint targets of the reward (the generalised demonstration) are the
+//! same in every mode: the start changes what the hand does, not the task.
 
 use std::path::{Path, PathBuf};
+use std::str::FromStr;
 
-use graspd::grasp::transfer::{solve_transferred, TransferredTool};
-use graspd::grasp::{pregrasp, Demonstration, Grasp, GraspSolver, PreGraspOptions, Scene, SolveOptions, ToolCollider};
+use graspd::grasp::transfer::{solve_transferred, Similarity, TransferredTool};
+use graspd::grasp::{
+    pregrasp, task_space_distance_cm, Demonstration, Grasp, GraspSolver, PreGraspOptions, Scene, SolveOptions,
+    ToolCollider,
+};
 use graspd::hand::HandModel;
 use graspd::shape::{builtin, ShapeSpace};
 use graspd::tools::{Category, Instance, Split};
-use nalgebra::{Isometry3, Point3};
+use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use serde::Serialize;
 
+use crate::daemon::DaemonGrasper;
 use crate::engine::SimError;
 
 /// Where graspd's CLI caches the built-in shape spaces (`assets/spaces`).
 pub fn spaces_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/spaces")
+}
+
+/// Where an episode's grasp comes from (module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum GraspFrom {
+    InProcess,
+    Daemon,
+}
+
+impl GraspFrom {
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::InProcess => "inprocess",
+            Self::Daemon => "daemon",
+        }
+    }
+}
+
+impl FromStr for GraspFrom {
+    type Err = SimError;
+    fn from_str(s: &str) -> Result<Self, SimError> {
+        match s {
+            "inprocess" => Ok(Self::InProcess),
+            "daemon" => Ok(Self::Daemon),
+            other => Err(SimError::Config { reason: format!("grasp source `{other}`: `inprocess` or `daemon`") }),
+        }
+    }
+}
+
+/// Where an episode's hand starts (module docs).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum StartMode {
+    #[default]
+    PreGrasp,
+    Canonical,
+    Neutral,
+}
+
+impl StartMode {
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::PreGrasp => "pregrasp",
+            Self::Canonical => "canonical",
+            Self::Neutral => "neutral",
+        }
+    }
+}
+
+impl FromStr for StartMode {
+    type Err = SimError;
+    fn from_str(s: &str) -> Result<Self, SimError> {
+        match s {
+            "pregrasp" => Ok(Self::PreGrasp),
+            "canonical" => Ok(Self::Canonical),
+            "neutral" => Ok(Self::Neutral),
+            other => {
+                Err(SimError::Config { reason: format!("start mode `{other}`: `pregrasp`, `canonical` or `neutral`") })
+            }
+        }
+    }
+}
+
+/// The neutral start's wrist (w/o PG), simulator frame: 30 cm above a
+/// table top at `table_z`, 20 cm toward the table's −x edge from its
+/// centre, palm down, fingers toward +x (palm frame: fingers +z, palmar
+/// side +y). Away from every task's tools and fixtures, above all of them.
+pub fn neutral_wrist(table_z: f64) -> Isometry3<f64> {
+    let fingers = Vector3::x();
+    let palmar = -Vector3::z();
+    let side = palmar.cross(&fingers);
+    let rotation = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[side, palmar, fingers]));
+    Isometry3::from_parts(
+        Translation3::new(-0.20, 0.0, table_z + 0.30),
+        UnitQuaternion::from_rotation_matrix(&rotation),
+    )
+}
+
+/// Where the hand is when an episode begins.
+#[derive(Clone, Debug, PartialEq)]
+pub enum HandStart {
+    /// At the plan's pre-grasp (which moves with the tool).
+    PreGrasp,
+    /// At a fixed pose in the simulator's frame (not carried with the tool),
+    /// joints at `actuated`; the script reaches the pre-grasp's line first.
+    Fixed { wrist_world: Isometry3<f64>, actuated: Vec<f64> },
 }
 
 /// A grasp to execute and the pose the episode starts from.
@@ -35,9 +146,12 @@ pub struct GraspPlan {
     pub pregrasp: Grasp,
     /// graspd's check: no hand sphere pierces the tool or the table at the pre-grasp.
     pub pregrasp_collision_free: bool,
-    /// "demonstration" (canonical tool) or "transferred" (through the shape space).
+    /// "demonstration" (canonical tool), "transferred" (through the shape
+    /// space), "daemon" (graspd serve, from the camera's view) or
+    /// "canonical" (the demonstration carried by the tool's pose: w/o GG).
     pub source: &'static str,
-    /// Paper Table I metric of the solved grasp (0 for the demonstration itself).
+    /// Paper Table I metric of the grasp against the generalised
+    /// demonstration, cm (0 for the demonstration on its own tool).
     pub task_space_distance_cm: f64,
     /// The generalised demonstration: the 12 keypoint targets the grasp was
     /// solved for (the demonstration's own on the canonical tool), world
@@ -45,11 +159,13 @@ pub struct GraspPlan {
     pub demo_keypoints: Vec<Point3<f64>>,
     /// The tool's latent in the category's shape space (zeros: the canonical tool).
     pub latent: Vec<f64>,
+    /// Where the hand starts (the pre-grasp unless the start mode says otherwise).
+    pub start: HandStart,
 }
 
 impl GraspPlan {
     /// The plan with the tool moved rigidly to `tool_pose` (the plan was made
-    /// with the tool frame at the world origin).
+    /// with the tool frame at the world origin). A fixed start stays where it is.
     pub fn carried(&self, hand: &HandModel, tool_pose: &Isometry3<f64>) -> Self {
         let carry = |g: &Grasp| Grasp::new(hand, tool_pose * g.wrist_pose_world, g.actuated.clone());
         Self {
@@ -59,15 +175,49 @@ impl GraspPlan {
             ..self.clone()
         }
     }
+
+    /// The hand's configuration at the episode's start (wrist, actuated joints).
+    pub fn start_configuration(&self) -> (Isometry3<f64>, &[f64]) {
+        match &self.start {
+            HandStart::PreGrasp => (self.pregrasp.wrist_pose_world, &self.pregrasp.actuated),
+            HandStart::Fixed { wrist_world, actuated } => (*wrist_world, actuated),
+        }
+    }
 }
 
-/// Plans grasps for a category's instances (one shape space, one demonstration).
+/// How an episode's grasp was obtained (for the reports).
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct GraspInfo {
+    /// `inprocess` or `daemon`.
+    pub grasp_from: &'static str,
+    /// `pregrasp`, `canonical` or `neutral`.
+    pub start: &'static str,
+    /// The plan's source (see [`GraspPlan::source`]).
+    pub source: &'static str,
+    pub task_space_distance_cm: f64,
+    pub pregrasp_collision_free: bool,
+    /// Daemon only: the Grasp call's round trip as the client sees it
+    /// (cloud into shared memory, sent, answered), and the daemon's engine time, ms.
+    pub latency_ms: Option<f64>,
+    pub daemon_engine_ms: Option<f64>,
+    /// Daemon only: points of the camera's view, and the registration's verdicts.
+    pub cloud_points: Option<usize>,
+    pub registration_confident: Option<bool>,
+    pub ambiguous_pose: Option<bool>,
+    pub daemon_warnings: Vec<String>,
+}
+
+/// Plans grasps for a category's instances (one shape space, one
+/// demonstration), in-process or from a daemon, for a start mode.
 pub struct GraspPlanner {
     hand: HandModel,
+    category: Category,
     demo: Demonstration,
     space: ShapeSpace,
     solver: GraspSolver,
     pregrasp: PreGraspOptions,
+    start: StartMode,
+    daemon: Option<DaemonGrasper>,
 }
 
 fn engine_error(e: impl std::fmt::Display) -> SimError {
@@ -77,14 +227,48 @@ fn engine_error(e: impl std::fmt::Display) -> SimError {
 impl GraspPlanner {
     /// Loads the category's bundled demonstration and its shape space (built
     /// and cached under `assets/spaces` when missing, as the CLI does).
+    /// Plans in-process, episodes start at the pre-grasp.
     pub fn new(hand: &HandModel, category: Category, seed: u64) -> Result<Self, SimError> {
         let demo = Demonstration::builtin(category).map_err(engine_error)?;
         let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {}).map_err(engine_error)?;
         let solver = GraspSolver::new(hand, SolveOptions { seed, ..SolveOptions::default() });
-        Ok(Self { hand: hand.clone(), demo, space, solver, pregrasp: PreGraspOptions::default() })
+        Ok(Self {
+            hand: hand.clone(),
+            category,
+            demo,
+            space,
+            solver,
+            pregrasp: PreGraspOptions::default(),
+            start: StartMode::PreGrasp,
+            daemon: None,
+        })
     }
 
-    /// The plan for `instance`, the tool frame at the world origin, the table top at z = 0.
+    /// Episodes start as `start` says.
+    pub fn with_start(mut self, start: StartMode) -> Self {
+        self.start = start;
+        self
+    }
+
+    /// Grasps come from this daemon (connected: [`DaemonGrasper::connect`]).
+    pub fn with_daemon(mut self, daemon: DaemonGrasper) -> Self {
+        self.daemon = Some(daemon);
+        self
+    }
+
+    pub fn grasp_from(&self) -> GraspFrom {
+        if self.daemon.is_some() {
+            GraspFrom::Daemon
+        } else {
+            GraspFrom::InProcess
+        }
+    }
+
+    pub fn start_mode(&self) -> StartMode {
+        self.start
+    }
+
+    /// The in-process plan for `instance`, the tool frame at the world origin, the table top at z = 0.
     pub fn plan(&mut self, instance: &Instance) -> Result<GraspPlan, SimError> {
         let hand = &self.hand;
         if instance.split == Split::Canonical {
@@ -100,20 +284,21 @@ impl GraspPlanner {
                 task_space_distance_cm: 0.0,
                 demo_keypoints: self.demo.keypoints(hand).map_err(engine_error)?,
                 latent: vec![0.0; self.space.modes.len()],
+                start: HandStart::PreGrasp,
             });
         }
         let k = self.space.instances.iter().position(|n| n == &instance.name).ok_or_else(|| SimError::Plan {
-            reason: format!(
-                "`{}` is not a training instance of the {} shape space",
-                instance.name, self.space.category
-            ),
+            reason: if instance.split == Split::Test {
+                format!(
+                    "`{}` is a test instance: it has no latent in the {} shape space, so it is grasped from the camera's view through the daemon (--grasp-from daemon)",
+                    instance.name, self.space.category
+                )
+            } else {
+                format!("`{}` is not a training instance of the {} shape space", instance.name, self.space.category)
+            },
         })?;
-        let canonical = graspd::tools::family(instance.category)
-            .map_err(engine_error)?
-            .into_iter()
-            .find(|i| i.split == Split::Canonical)
-            .ok_or_else(|| SimError::Plan { reason: "the family has no canonical instance".into() })?;
         let keypoints = self.demo.keypoints(hand).map_err(engine_error)?;
+        let canonical = self.canonical_instance()?;
         let tool = TransferredTool::from_latent(&self.space, &self.space.train_latents[k], &keypoints, &canonical.mesh)
             .map_err(engine_error)?;
         // As `graspd eval grasp`: the table under the registered shape.
@@ -128,7 +313,120 @@ impl GraspPlanner {
             task_space_distance_cm: out.task_space_distance_cm,
             demo_keypoints: tool.targets.clone(),
             latent: self.space.train_latents[k].clone(),
+            start: HandStart::PreGrasp,
         })
+    }
+
+    fn canonical_instance(&self) -> Result<Instance, SimError> {
+        graspd::tools::family(self.category)
+            .map_err(engine_error)?
+            .into_iter()
+            .find(|i| i.split == Split::Canonical)
+            .ok_or_else(|| SimError::Plan { reason: "the family has no canonical instance".into() })
+    }
+
+    /// The plan of one episode, the tool frame at the world origin (as
+    /// [`Self::plan`]; carried to the episode's start by the episode), with
+    /// the tool standing at `tool_start` (simulator frame) on a table at
+    /// `table_z`. In-process: `base` (this tool's [`Self::plan`], made once)
+    /// or a new one; from the daemon: the camera's view of the tool at
+    /// `tool_start` (noise and registration seeded by `seed`). Then the start
+    /// mode is applied.
+    pub fn episode_plan(
+        &mut self,
+        instance: &Instance,
+        base: Option<&GraspPlan>,
+        tool_start: &Isometry3<f64>,
+        table_z: f64,
+        seed: u64,
+    ) -> Result<(GraspPlan, GraspInfo), SimError> {
+        let mut info =
+            GraspInfo { grasp_from: self.grasp_from().name(), start: self.start.name(), ..GraspInfo::default() };
+        let (mut plan, tool_from_canonical) = match &mut self.daemon {
+            None => {
+                let plan = match base {
+                    Some(p) => p.clone(),
+                    None => self.plan(instance)?,
+                };
+                (plan, Similarity::identity())
+            }
+            Some(daemon) => {
+                let d = daemon.grasp(
+                    &self.hand,
+                    self.category,
+                    &instance.mesh,
+                    tool_start,
+                    table_z,
+                    self.demo.table,
+                    seed,
+                )?;
+                if d.latent.len() != self.space.modes.len() {
+                    return Err(SimError::Daemon {
+                        prefix: daemon.prefix().to_owned(),
+                        reason: format!(
+                            "its latent has {} values, the simulator's shape space {} modes",
+                            d.latent.len(),
+                            self.space.modes.len()
+                        ),
+                    });
+                }
+                // The generalised demonstration the daemon solved for: the
+                // demonstration's keypoints through the latent and the
+                // registered pose (what graspd's Registrar::transfer does),
+                // in the simulator's copy of the same shape space.
+                let keypoints: Vec<[f64; 3]> =
+                    self.demo.keypoints(&self.hand).map_err(engine_error)?.iter().map(|p| [p.x, p.y, p.z]).collect();
+                let targets: Vec<Point3<f64>> = self
+                    .space
+                    .deform_anchored(&keypoints, &d.latent)
+                    .into_iter()
+                    .map(|z| d.tool_from_canonical.apply(&Point3::from(z)))
+                    .collect();
+                info.latency_ms = Some(d.latency_ms);
+                info.daemon_engine_ms = Some(d.engine_ms);
+                info.cloud_points = Some(d.cloud_points);
+                info.registration_confident = Some(d.registration_confident);
+                info.ambiguous_pose = Some(d.ambiguous_pose);
+                info.daemon_warnings = d.warnings.clone();
+                let plan = GraspPlan {
+                    grasp: d.grasp,
+                    pregrasp: d.pregrasp,
+                    pregrasp_collision_free: d.pregrasp_collision_free,
+                    source: "daemon",
+                    task_space_distance_cm: d.task_space_distance_cm,
+                    demo_keypoints: targets,
+                    latent: d.latent,
+                    start: HandStart::PreGrasp,
+                };
+                (plan, d.tool_from_canonical)
+            }
+        };
+        match self.start {
+            StartMode::PreGrasp => {}
+            StartMode::Canonical => {
+                // w/o GG: the demonstrated wrist and joints, moved only by
+                // where the tool is thought to be (no shape-space transfer).
+                let hand = &self.hand;
+                let demo = self.demo.grasp_at(hand, &Isometry3::identity()).map_err(engine_error)?;
+                let grasp = Grasp::new(hand, tool_from_canonical.carry(&demo.wrist_pose_world), demo.actuated.clone());
+                let collider = ToolCollider::new(&instance.mesh, Isometry3::identity()).map_err(engine_error)?;
+                let scene = Scene { tool: Some(&collider), table_height_world: self.demo.table.then_some(0.0) };
+                let pre = pregrasp(hand, &grasp, &scene, &self.pregrasp).map_err(engine_error)?;
+                plan.task_space_distance_cm = task_space_distance_cm(hand, &grasp, &plan.demo_keypoints);
+                plan.grasp = grasp;
+                plan.pregrasp = pre.grasp;
+                plan.pregrasp_collision_free = pre.collision_free;
+                plan.source = "canonical";
+            }
+            StartMode::Neutral => {
+                plan.start =
+                    HandStart::Fixed { wrist_world: neutral_wrist(table_z), actuated: self.hand.open_hand().to_vec() };
+            }
+        }
+        info.source = plan.source;
+        info.task_space_distance_cm = plan.task_space_distance_cm;
+        info.pregrasp_collision_free = plan.pregrasp_collision_free;
+        Ok((plan, info))
     }
 
     pub fn hand(&self) -> &HandModel {

@@ -110,8 +110,9 @@ pub struct DrillSetup {
     pub ranges: DrillRanges,
 }
 
-/// Plans the grasp of one drill, builds its scene once and runs `episodes`
-/// episodes (seeds `first_seed`, `first_seed + 1`, ...).
+/// Builds one drill's scene once and runs `episodes` episodes (seeds
+/// `first_seed`, `first_seed + 1`, ...), each with the planner's grasp for
+/// the drill where it starts.
 pub fn position_instance(
     asset: &HandAsset,
     planner: &mut GraspPlanner,
@@ -119,7 +120,7 @@ pub fn position_instance(
     setup: &DrillSetup,
     first_seed: u64,
     episodes: usize,
-) -> Result<(GraspPlan, Vec<PoseOutcome>), SimError> {
+) -> Result<Vec<PoseOutcome>, SimError> {
     if instance.category != Category::Drill {
         return Err(SimError::Config {
             reason: format!("Position drill takes a drill, not `{}` ({})", instance.name, instance.category),
@@ -129,19 +130,23 @@ pub fn position_instance(
     let mut rig = TaskRig::build(asset, planner, instance, &setup.base, "position", Vec::new(), Vec::new())?;
     let mut out = Vec::with_capacity(episodes);
     for e in 0..episodes as u64 {
-        let episode = setup.ranges.sample(first_seed.wrapping_add(e), rig.table.top_z);
-        out.push(run_position(
+        let seed = first_seed.wrapping_add(e);
+        let episode = setup.ranges.sample(seed, rig.table.top_z);
+        let (plan, info) = rig.episode_plan(planner, &episode.start, seed)?;
+        let mut o = run_position(
             &rig.scene,
             &mut rig.data,
             asset.model(),
-            &rig.plan,
+            &plan,
             &rig.height_points,
             &episode,
             &setup.script,
             setup.base.physics.control_hz,
-        )?);
+        )?;
+        o.grasp = info;
+        out.push(o);
     }
-    Ok((rig.plan, out))
+    Ok(out)
 }
 
 #[cfg(test)]
@@ -159,7 +164,7 @@ mod tests {
         let mut planner = GraspPlanner::new(asset.model(), Category::Drill, 0).unwrap();
         let drill = tools::instance(Category::Drill, "drill_canonical").unwrap();
         let setup = DrillSetup::default();
-        let (_, outs) = position_instance(&asset, &mut planner, &drill, &setup, 200, 3).unwrap();
+        let outs = position_instance(&asset, &mut planner, &drill, &setup, 200, 3).unwrap();
         for (k, o) in outs.iter().enumerate() {
             let episode = setup.ranges.sample(200 + k as u64, 0.0);
             // At the start the drill stands 10-20 cm below its goal.

@@ -84,3 +84,61 @@ fn nail_json_reports_depth_and_the_fixture() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("hammer"));
 }
+
+/// The start modes are reported and change what the hand does: from the
+/// neutral pose the script reaches the grasp itself (the mug reaches its
+/// goal 1 s later than from the pre-grasp, still lifted and placed); the
+/// canonical start on the canonical mug is the demonstration's own grasp.
+#[test]
+fn start_modes_are_reported_per_episode() {
+    let run = |start: &str| {
+        let v = sim(&["place", "--instances", "canonical", "--episodes", "1", "--start", start, "--json"]);
+        assert_eq!(v["start"], start, "{v}");
+        assert_eq!(v["grasp_from"], "inprocess", "{v}");
+        v["results"][0]["episodes"][0].clone()
+    };
+    let pre = run("pregrasp");
+    let neutral = run("neutral");
+    let canonical = run("canonical");
+    assert_eq!(pre["grasp"]["source"], "demonstration");
+    assert_eq!(canonical["grasp"]["source"], "canonical");
+    assert_eq!(canonical["grasp"]["task_space_distance_cm"], 0.0);
+    assert_eq!(neutral["grasp"]["start"], "neutral");
+    assert!(neutral["grasp"]["latency_ms"].is_null(), "in-process: no round trip");
+    for e in [&pre, &neutral, &canonical] {
+        assert!(e["clearance_after_lift_m"].as_f64().unwrap() > 0.05, "{e}");
+        assert_eq!(e["success"], true, "{e}");
+    }
+    let reached = |e: &serde_json::Value| e["first_reached_s"].as_f64().unwrap();
+    assert!((reached(&neutral) - reached(&pre) - 1.0).abs() < 0.05, "{pre} {neutral}");
+}
+
+/// Test tools have no training latent: in-process planning refuses them
+/// and says where their grasps come from.
+#[test]
+fn test_instances_need_the_daemon() {
+    let out = Command::new(env!("CARGO_BIN_EXE_sim"))
+        .args(["place", "--instances", "test", "--episodes", "1"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--grasp-from daemon"), "{err}");
+}
+
+/// No daemon under the prefix: the run stops at once with an error naming
+/// the prefix and what to start.
+#[test]
+fn a_daemon_that_is_down_is_a_clear_error() {
+    let prefix = format!("graspd_sim_cli_nobody_{}", std::process::id());
+    let out = Command::new(env!("CARGO_BIN_EXE_sim"))
+        .args(["place", "--grasp-from", "daemon", "--daemon-prefix", &prefix, "--instances", "canonical"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains(&prefix) && err.contains("graspd serve"), "{err}");
+    let out = Command::new(env!("CARGO_BIN_EXE_sim")).args(["place", "--grasp-from", "cloud"]).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("inprocess"));
+}
