@@ -82,6 +82,10 @@ struct GraspArgs {
     /// Deadline of one Grasp call to the daemon, ms.
     #[arg(long, default_value_t = 10_000)]
     daemon_timeout_ms: u64,
+    /// Multiplies the scene camera's depth noise (0: a noiseless camera), for
+    /// telling the registration's errors from the sensor's.
+    #[arg(long, default_value_t = 1.0)]
+    camera_noise_scale: f64,
 }
 
 #[derive(clap::Args)]
@@ -256,11 +260,17 @@ fn make_planner(
                 timeout: std::time::Duration::from_millis(a.daemon_timeout_ms),
                 ..Default::default()
             };
+            if !(a.camera_noise_scale.is_finite() && a.camera_noise_scale >= 0.0) {
+                return Err(format!("--camera-noise-scale {}: 0 or more", a.camera_noise_scale).into());
+            }
+            let mut camera = graspd_sim::camera::SceneCamera::default();
+            camera.noise.sigma_m *= a.camera_noise_scale;
+            camera.noise.quadratic_per_m *= a.camera_noise_scale;
             let daemon = graspd_sim::daemon::DaemonGrasper::connect(
                 options,
                 category,
                 planner.latent_dim(),
-                graspd_sim::camera::SceneCamera::default(),
+                camera,
                 graspd_sim::camera::LabFrame::default(),
             )?;
             planner.with_daemon(daemon)

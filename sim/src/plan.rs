@@ -204,6 +204,14 @@ pub struct GraspInfo {
     pub cloud_points: Option<usize>,
     pub registration_confident: Option<bool>,
     pub ambiguous_pose: Option<bool>,
+    /// Daemon only: how far the registered canonical frame is from the
+    /// tool's own frame (its origin's offset, m; its turn, rad) and the
+    /// registered scale. A tool's mesh is given in its category's canonical
+    /// frame, so a good registration is near zero offset and turn (a
+    /// training or test tool's shape differs, so not exactly zero).
+    pub registered_offset_m: Option<f64>,
+    pub registered_turn_rad: Option<f64>,
+    pub registered_scale: Option<f64>,
     pub daemon_warnings: Vec<String>,
 }
 
@@ -387,6 +395,9 @@ impl GraspPlanner {
                 info.cloud_points = Some(d.cloud_points);
                 info.registration_confident = Some(d.registration_confident);
                 info.ambiguous_pose = Some(d.ambiguous_pose);
+                info.registered_offset_m = Some(d.tool_from_canonical.translation.norm());
+                info.registered_turn_rad = Some(d.tool_from_canonical.rotation.angle());
+                info.registered_scale = Some(d.tool_from_canonical.scale);
                 info.daemon_warnings = d.warnings.clone();
                 let plan = GraspPlan {
                     grasp: d.grasp,
