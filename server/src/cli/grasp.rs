@@ -330,7 +330,7 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
     let out = solve_transferred(&mut solver, &demo, &tool, table_z, &pre)?;
     if !out.pregrasp.collision_free {
         warnings.push(format!(
-            "the pre-grasp touches the scene ({:.1} mm); try a larger --backoff-m",
+            "no clear pre-grasp near the grasp; the preferred one touches the scene ({:.1} mm)",
             -1e3 * out.pregrasp.min_clearance_m
         ));
     }
@@ -340,6 +340,9 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
     let mut pregrasp = grasp_json(&hand, &out.pregrasp.grasp);
     pregrasp["collision_free"] = serde_json::json!(out.pregrasp.collision_free);
     pregrasp["min_clearance_mm"] = serde_json::json!(1e3 * out.pregrasp.min_clearance_m);
+    pregrasp["backoff_m"] = serde_json::json!(out.pregrasp.backoff_m);
+    pregrasp["approach_tilt_rad"] = serde_json::json!(out.pregrasp.approach_tilt_rad);
+    pregrasp["joint_fraction"] = serde_json::json!(out.pregrasp.joint_fraction);
     let targets: Vec<serde_json::Value> = hand
         .keypoints()
         .iter()

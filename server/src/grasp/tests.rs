@@ -906,3 +906,51 @@ fn an_inside_out_part_is_not_inside_far_away() {
         assert!(sd > 0.0, "{p:?}: {sd}");
     }
 }
+
+/// A real case: the drill demonstration carried onto a training drill. Its
+/// palm faces slightly down, so backing straight off meets the table; the
+/// search finds a clear pre-grasp whose straight approach keeps clear too.
+#[test]
+fn pregrasp_search_clears_the_table_under_a_drill() {
+    use crate::grasp::pregrasp::pregrasp;
+    use crate::grasp::transfer::{solve_transferred, TransferredTool};
+    use crate::tools::{self, Category, Split};
+    let hand = sih();
+    let demo = Demonstration::builtin(Category::Drill).unwrap();
+    let family = tools::family(Category::Drill).unwrap();
+    let canonical = family.iter().find(|i| i.split == Split::Canonical).unwrap();
+    let (space, _) =
+        crate::shape::builtin::build(Category::Drill, &crate::shape::BuildOptions::default(), |_, _| {}).unwrap();
+    let keypoints = demo.keypoints(&hand).unwrap();
+    let tool = TransferredTool::from_latent(&space, &space.train_latents[0], &keypoints, &canonical.mesh).unwrap();
+    let table = Some(tool.lowest_z());
+    let mut solver = GraspSolver::new(&hand, SolveOptions::default());
+    let out = solve_transferred(&mut solver, &demo, &tool, table, &PreGraspOptions::default()).unwrap();
+    let scene = Scene { tool: Some(&tool.collider), table_height_world: table };
+    let straight = PreGraspOptions { search: false, ..Default::default() };
+    let plain = pregrasp(&hand, &out.grasp, &scene, &straight).unwrap();
+    assert!(
+        !plain.collision_free,
+        "straight back-off is clear here ({:.1} mm): the case is gone",
+        plain.min_clearance_m * 1e3
+    );
+    let pre = &out.pregrasp;
+    let opts = PreGraspOptions::default();
+    assert!(pre.collision_free && pre.min_clearance_m >= opts.min_clearance_m, "{pre:?}");
+    assert!(pre.candidates > 1 && pre.approach_tilt_rad > 0.0 && pre.approach_tilt_rad <= 60f64.to_radians() + 1e-9);
+    // The wrist moved back by the reported back-off along a direction within the reported tilt.
+    let n = out.grasp.wrist_pose_world.rotation * hand.palm_normal().into_inner();
+    let moved = out.grasp.wrist_pose_world.translation.vector - pre.grasp.wrist_pose_world.translation.vector;
+    assert!((moved.norm() - pre.backoff_m).abs() < 1e-9);
+    assert!((moved.normalize().dot(&n).acos() - pre.approach_tilt_rad).abs() < 1e-6);
+    // Halfway along the approach, still clear.
+    let half = Grasp::new(
+        &hand,
+        Isometry3::from_parts(
+            Translation3::from(out.grasp.wrist_pose_world.translation.vector - 0.5 * moved),
+            out.grasp.wrist_pose_world.rotation,
+        ),
+        pre.grasp.actuated.clone(),
+    );
+    assert!(solver.clearance(&half, &scene).min_clearance_m >= opts.min_clearance_m);
+}
