@@ -165,6 +165,9 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                         r.cpd_partial.keypoint_error_mm.median, r.cpd_partial.keypoint_error_mm.p90,
                         r.ours.chamfer_mm.median, r.fit_ms.p50, r.fit_ms.p99
                     );
+                    if r.skipped_views > 0 {
+                        println!("  {} views not scored (fewer than 50 points of the tool seen)", r.skipped_views);
+                    }
                 }
             }
         }

@@ -75,6 +75,9 @@ pub struct SplitReport {
     pub split: String,
     pub instances: usize,
     pub trials: usize,
+    /// Views not scored: the camera saw fewer than 50 points of the tool, or
+    /// the scene could not be set up (counted, so that nothing vanishes silently).
+    pub skipped_views: usize,
     pub points_per_view: Percentiles,
     pub ours: MethodErrors,
     pub canonical: MethodErrors,
@@ -114,12 +117,14 @@ pub fn evaluate(
     mut progress: impl FnMut(),
 ) -> SplitReport {
     let mut trials = Vec::new();
+    let mut skipped_views = 0;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed);
     for inst in instances {
         let truth_surface = sample_points(&inst.mesh, 4000, 99).map(|p| cpd::to_p3(&p)).unwrap_or_default();
         for view in 0..opts.views {
-            if let Some(t) = trial(registrar, inst, &truth_surface, view, opts, &mut rng) {
-                trials.push(t);
+            match trial(registrar, inst, &truth_surface, view, opts, &mut rng) {
+                Some(t) => trials.push(t),
+                None => skipped_views += 1,
             }
             progress();
         }
@@ -133,6 +138,7 @@ pub fn evaluate(
         split: split.name().to_string(),
         instances: instances.len(),
         trials: trials.len(),
+        skipped_views,
         points_per_view: percentiles(trials.iter().map(|t| t.points as f64).collect()),
         ours: collect(0),
         canonical: collect(1),
