@@ -226,6 +226,29 @@ impl TaskRig {
     ) -> Result<(GraspPlan, GraspInfo), SimError> {
         planner.episode_plan(&self.instance, self.plan.as_ref(), tool_start, self.table.top_z, seed)
     }
+
+    /// Runs the seeded episodes `first_seed`, `first_seed + 1`, ... on this
+    /// rig: each is drawn by `draw(seed, table top z)`, gets the plan for the
+    /// tool's start (`start_of`) and is run by `run`; the plan's info goes
+    /// with each outcome. One loop for every task, so that all seed alike.
+    pub fn run_seeded<E, O>(
+        &mut self,
+        planner: &mut GraspPlanner,
+        first_seed: u64,
+        episodes: usize,
+        draw: impl Fn(u64, f64) -> E,
+        start_of: impl Fn(&E) -> Isometry3<f64>,
+        mut run: impl FnMut(&mut Self, &GraspPlan, &E) -> Result<O, SimError>,
+    ) -> Result<Vec<(O, GraspInfo)>, SimError> {
+        let mut out = Vec::with_capacity(episodes);
+        for e in 0..episodes as u64 {
+            let seed = first_seed.wrapping_add(e);
+            let episode = draw(seed, self.table.top_z);
+            let (plan, info) = self.episode_plan(planner, &start_of(&episode), seed)?;
+            out.push((run(self, &plan, &episode)?, info));
+        }
+        Ok(out)
+    }
 }
 
 /// The per-step machinery of a scripted task episode (module docs).

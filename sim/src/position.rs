@@ -128,25 +128,26 @@ pub fn position_instance(
     }
     setup.ranges.validate()?;
     let mut rig = TaskRig::build(asset, planner, instance, &setup.base, "position", Vec::new(), Vec::new())?;
-    let mut out = Vec::with_capacity(episodes);
-    for e in 0..episodes as u64 {
-        let seed = first_seed.wrapping_add(e);
-        let episode = setup.ranges.sample(seed, rig.table.top_z);
-        let (plan, info) = rig.episode_plan(planner, &episode.start, seed)?;
-        let mut o = run_position(
-            &rig.scene,
-            &mut rig.data,
-            asset.model(),
-            &plan,
-            &rig.height_points,
-            &episode,
-            &setup.script,
-            setup.base.physics.control_hz,
-        )?;
-        o.grasp = info;
-        out.push(o);
-    }
-    Ok(out)
+    let runs = rig.run_seeded(
+        planner,
+        first_seed,
+        episodes,
+        |seed, table_z| setup.ranges.sample(seed, table_z),
+        |episode| episode.start,
+        |rig, plan, episode| {
+            run_position(
+                &rig.scene,
+                &mut rig.data,
+                asset.model(),
+                plan,
+                &rig.height_points,
+                episode,
+                &setup.script,
+                setup.base.physics.control_hz,
+            )
+        },
+    )?;
+    Ok(runs.into_iter().map(|(o, grasp)| PoseOutcome { grasp, ..o }).collect())
 }
 
 #[cfg(test)]
