@@ -328,6 +328,94 @@ fn print_summary(rows: &[SummaryRow]) {
     }
 }
 
+/// What a task command reports: per tool, its episodes (JSON) and a summary
+/// row; over all tools, the successes. Shared by `sim place`, `position`, `nail`.
+#[derive(Default)]
+struct TaskReport {
+    rows: Vec<serde_json::Value>,
+    summary: Vec<SummaryRow>,
+    successes: usize,
+    total: usize,
+}
+
+impl TaskReport {
+    /// One tool's episodes, with their successes, grasp info and the final
+    /// error(s) in words for the summary table.
+    fn add<O: serde::Serialize>(
+        &mut self,
+        inst: &graspd::tools::Instance,
+        outs: &[O],
+        success: impl Fn(&O) -> bool,
+        grasp: impl Fn(&O) -> &graspd_sim::plan::GraspInfo,
+        errors: String,
+    ) {
+        let ok = outs.iter().filter(|o| success(o)).count();
+        self.successes += ok;
+        self.total += outs.len();
+        let first = outs.first().map(|o| grasp(o).clone()).unwrap_or_default();
+        self.summary.push(SummaryRow {
+            tool: inst.name.clone(),
+            split: inst.split.name(),
+            grasp_from: first.grasp_from,
+            source: first.source,
+            start: first.start,
+            successes: ok,
+            episodes: outs.len(),
+            errors,
+            latency_ms: median(outs.iter().filter_map(|o| grasp(o).latency_ms).collect()),
+        });
+        self.rows.push(serde_json::json!({
+            "instance": inst.name,
+            "split": inst.split.name(),
+            "grasp_from": first.grasp_from,
+            "grasp_source": first.source,
+            "start": first.start,
+            "successes": ok,
+            "episodes": outs,
+        }));
+    }
+
+    /// Prints the report: `extra` (the task's own fields: ranges, fixture)
+    /// joined with the common ones as JSON, or the summary table.
+    fn print(
+        self,
+        json: bool,
+        task: &str,
+        category: graspd::tools::Category,
+        asset: &graspd_sim::hand::HandAsset,
+        planner: &graspd_sim::plan::GraspPlanner,
+        mut extra: serde_json::Value,
+    ) -> Result<(), Box<dyn std::error::Error>> {
+        if !json {
+            print_summary(&self.summary);
+            println!("success {} of {}", self.successes, self.total);
+            return Ok(());
+        }
+        let common = serde_json::json!({
+            "category": category.name(),
+            "task": task,
+            "grasp_from": planner.grasp_from(),
+            "start": planner.start_mode(),
+            // The policy interface these episodes would be driven through (sim/src/obs.rs).
+            "observation_layout": graspd_sim::obs::ObservationLayout {
+                keypoints: asset.model().keypoints().len(),
+                latent_dim: planner.latent_dim(),
+            }
+            .segments(),
+            "action_layout": graspd_sim::obs::ActionLayout { actuated: asset.model().actuated_joints().len() }.segments(),
+            "episodes": self.total,
+            "successes": self.successes,
+            "success_rate": self.successes as f64 / self.total.max(1) as f64,
+            "results": self.rows,
+        });
+        if let (Some(e), serde_json::Value::Object(c)) = (extra.as_object_mut(), common) {
+            e.extend(c);
+        }
+        println!("{}", serde_json::to_string_pretty(&extra)?);
+        Ok(())
+    }
+}
+
 #[derive(Clone, Copy, PartialEq)]
 enum PoseTask {
     PlaceMug,
@@ -364,17 +452,12 @@ fn run_pose_task(a: PoseTaskArgs, task: PoseTask) -> Result<(), Box<dyn std::err
         PoseTask::PlaceMug => serde_json::to_value(&place.ranges)?,
         PoseTask::PositionDrill => serde_json::to_value(&position.ranges)?,
     };
-    let mut rows = Vec::new();
-    let mut summary = Vec::new();
-    let (mut successes, mut total) = (0usize, 0usize);
+    let mut report = TaskReport::default();
     for inst in chosen {
         let outs = match task {
             PoseTask::PlaceMug => place_instance(&asset, &mut planner, inst, &place, a.seed, a.episodes)?,
             PoseTask::PositionDrill => position_instance(&asset, &mut planner, inst, &position, a.seed, a.episodes)?,
         };
-        let ok = outs.iter().filter(|o| o.success).count();
-        successes += ok;
-        total += outs.len();
         if !a.json {
             for o in &outs {
                 println!(
@@ -393,59 +476,14 @@ fn run_pose_task(a: PoseTaskArgs, task: PoseTask) -> Result<(), Box<dyn std::err
                 );
             }
         }
-        let first = outs.first().map(|o| o.grasp.clone()).unwrap_or_default();
-        summary.push(SummaryRow {
-            tool: inst.name.clone(),
-            split: inst.split.name(),
-            grasp_from: first.grasp_from,
-            source: first.source,
-            start: first.start,
-            successes: ok,
-            episodes: outs.len(),
-            errors: format!(
-                "d {:.1} mm  θ {:.3} rad",
-                1e3 * median(outs.iter().map(|o| o.final_distance_m).collect()),
-                median(outs.iter().map(|o| o.final_angle_rad).collect())
-            ),
-            latency_ms: median(outs.iter().filter_map(|o| o.grasp.latency_ms).collect()),
-        });
-        rows.push(serde_json::json!({
-            "instance": inst.name,
-            "split": inst.split.name(),
-            "grasp_from": first.grasp_from,
-            "grasp_source": first.source,
-            "start": first.start,
-            "successes": ok,
-            "episodes": outs,
-        }));
-    }
-    if a.json {
-        println!(
-            "{}",
-            serde_json::to_string_pretty(&serde_json::json!({
-                "category": category.name(),
-                "task": task_name,
-                "grasp_from": planner.grasp_from(),
-                "start": planner.start_mode(),
-                "ranges": ranges,
-                // The policy interface these episodes would be driven through (sim/src/obs.rs).
-                "observation_layout": graspd_sim::obs::ObservationLayout {
-                    keypoints: asset.model().keypoints().len(),
-                    latent_dim: planner.latent_dim(),
-                }
-                .segments(),
-                "action_layout": graspd_sim::obs::ActionLayout { actuated: asset.model().actuated_joints().len() }.segments(),
-                "episodes": total,
-                "successes": successes,
-                "success_rate": successes as f64 / total.max(1) as f64,
-                "results": rows,
-            }))?
+        let errors = format!(
+            "d {:.1} mm  θ {:.3} rad",
+            1e3 * median(outs.iter().map(|o| o.final_distance_m).collect()),
+            median(outs.iter().map(|o| o.final_angle_rad).collect())
         );
-    } else {
-        print_summary(&summary);
-        println!("success {successes} of {total}");
+        report.add(inst, &outs, |o| o.success, |o| &o.grasp, errors);
     }
-    Ok(())
+    report.print(a.json, task_name, category, &asset, &planner, serde_json::json!({ "ranges": ranges }))
 }
 
 fn run_nail(a: NailArgs) -> Result<(), Box<dyn std::error::Error>> {
@@ -481,14 +519,9 @@ fn run_nail(a: NailArgs) -> Result<(), Box<dyn std::error::Error>> {
     if let Some(v) = a.squeeze_rad {
         setup.script.lift.squeeze_rad = v;
     }
-    let mut rows = Vec::new();
-    let mut summary = Vec::new();
-    let (mut successes, mut total) = (0usize, 0usize);
+    let mut report = TaskReport::default();
     for inst in chosen {
         let outs = nail_instance(&asset, &mut planner, inst, &setup, a.seed, a.episodes)?;
-        let ok = outs.iter().filter(|o| o.success).count();
-        successes += ok;
-        total += outs.len();
         if !a.json {
             for o in &outs {
                 println!(
@@ -509,56 +542,12 @@ fn run_nail(a: NailArgs) -> Result<(), Box<dyn std::error::Error>> {
                 );
             }
         }
-        let first = outs.first().map(|o| o.grasp.clone()).unwrap_or_default();
-        summary.push(SummaryRow {
-            tool: inst.name.clone(),
-            split: inst.split.name(),
-            grasp_from: first.grasp_from,
-            source: first.source,
-            start: first.start,
-            successes: ok,
-            episodes: outs.len(),
-            errors: format!("depth {:.1} mm", 1e3 * median(outs.iter().map(|o| o.depth_m).collect())),
-            latency_ms: median(outs.iter().filter_map(|o| o.grasp.latency_ms).collect()),
-        });
-        rows.push(serde_json::json!({
-            "instance": inst.name,
-            "split": inst.split.name(),
-            "grasp_from": first.grasp_from,
-            "grasp_source": first.source,
-            "start": first.start,
-            "successes": ok,
-            "episodes": outs,
-        }));
+        let errors = format!("depth {:.1} mm", 1e3 * median(outs.iter().map(|o| o.depth_m).collect()));
+        report.add(inst, &outs, |o| o.success, |o| &o.grasp, errors);
     }
-    if a.json {
-        println!(
-            "{}",
-            serde_json::to_string_pretty(&serde_json::json!({
-                "category": category.name(),
-                "task": "drive_nail",
-                "grasp_from": planner.grasp_from(),
-                "start": planner.start_mode(),
-                "ranges": setup.ranges,
-                "fixture": setup.fixture,
-                // The policy interface (sim/src/obs.rs); the goal segment is the nail's head.
-                "observation_layout": graspd_sim::obs::ObservationLayout {
-                    keypoints: asset.model().keypoints().len(),
-                    latent_dim: planner.latent_dim(),
-                }
-                .segments(),
-                "action_layout": graspd_sim::obs::ActionLayout { actuated: asset.model().actuated_joints().len() }.segments(),
-                "episodes": total,
-                "successes": successes,
-                "success_rate": successes as f64 / total.max(1) as f64,
-                "results": rows,
-            }))?
-        );
-    } else {
-        print_summary(&summary);
-        println!("success {successes} of {total}");
-    }
-    Ok(())
+    // The goal segment of the observation layout is the nail's head.
+    let extra = serde_json::json!({ "ranges": setup.ranges, "fixture": setup.fixture });
+    report.print(a.json, "drive_nail", category, &asset, &planner, extra)
 }
 
 fn run_lift(a: LiftArgs) -> Result<(), Box<dyn std::error::Error>> {
