@@ -278,6 +278,8 @@ impl<'a> EpisodeStepper<'a> {
         control_hz: f64,
     ) -> Result<Self, SimError> {
         reset_to_pregrasp(scene, data, hand_model, plan, tool_start)?;
+        // A no-op unless this thread records an episode for pictures (crate::render::record).
+        crate::render::record_start(scene, data);
         let hand = scene.hand.as_ref().ok_or(SimError::MissingElement { kind: "hand", name: "hand".into() })?;
         let tool = scene.tools.first().ok_or(SimError::MissingElement { kind: "tool", name: "tool".into() })?;
         let tool_from_world = tool_start.inverse();
@@ -305,6 +307,7 @@ impl<'a> EpisodeStepper<'a> {
         }
         self.physics_s += t0.elapsed().as_secs_f64();
         self.physics_steps += self.substeps;
+        crate::render::record_step(data);
     }
 
     /// The grasp terms' inputs now, the tool at `tool_pose`.

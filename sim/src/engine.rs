@@ -43,6 +43,12 @@ pub enum SimError {
     /// The scene's depth camera could not give a usable view of the tool.
     #[error("depth camera: {reason}")]
     Camera { reason: String },
+    /// No offscreen OpenGL context (EGL library or device missing): pictures cannot be drawn here.
+    #[error("offscreen rendering is unavailable here (MuJoCo's renderer needs EGL): {reason}")]
+    Offscreen { reason: String },
+    /// Drawing a picture failed.
+    #[error("rendering: {reason}")]
+    Render { reason: String },
 }
 
 /// The version string of the MuJoCo library linked at run time.

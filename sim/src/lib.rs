@@ -23,6 +23,7 @@ pub mod obs;
 pub mod place;
 pub mod plan;
 pub mod position;
+pub mod render;
 pub mod scene;
 pub mod task;
 pub mod tool;

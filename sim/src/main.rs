@@ -29,6 +29,44 @@ enum Command {
     Bench(BenchArgs),
     /// Writes a lift scene's MJCF (table, tool, hand at the pre-grasp), for MuJoCo's own tools.
     Scene(SceneArgs),
+    /// One seeded episode drawn offscreen: K frames evenly spaced over it and a strip of them (PNG).
+    Strip(StripArgs),
+}
+
+#[derive(clap::Args)]
+struct StripArgs {
+    /// `place` (Place mug), `position` (Position drill) or `nail` (Drive nail).
+    #[arg(long)]
+    task: String,
+    /// An instance of the task's category (default: the canonical tool).
+    #[arg(long)]
+    instance: Option<String>,
+    /// The episode's seed (start, goal; also the grasp solver's).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// `pregrasp`, `canonical` or `neutral` (as the task commands' --start).
+    #[arg(long, default_value = "pregrasp")]
+    start: String,
+    #[arg(long, default_value_t = 6)]
+    frames: usize,
+    /// Size of one frame, pixels.
+    #[arg(long, default_value_t = 320)]
+    width: usize,
+    #[arg(long, default_value_t = 240)]
+    height: usize,
+    /// Camera azimuth about z from +x and elevation (negative: looking down), degrees.
+    #[arg(long, allow_negative_numbers = true)]
+    azimuth: Option<f64>,
+    #[arg(long, allow_negative_numbers = true)]
+    elevation: Option<f64>,
+    /// Camera distance from the middle of the tool's path, m (default: from the path's extent).
+    #[arg(long)]
+    distance: Option<f64>,
+    /// Output folder (frame_NN.png, strip.png), made if missing.
+    #[arg(long)]
+    out: std::path::PathBuf,
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(clap::Args)]
@@ -208,6 +246,7 @@ fn main() -> ExitCode {
         Command::Nail(a) => run_nail(a),
         Command::Bench(a) => run_bench(a),
         Command::Scene(a) => run_scene(a),
+        Command::Strip(a) => run_strip(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -738,5 +777,64 @@ fn run_scene(a: SceneArgs) -> Result<(), Box<dyn std::error::Error>> {
     spec.build()?;
     std::fs::write(&a.out, xml).map_err(|e| format!("cannot write {}: {e}", a.out.display()))?;
     println!("{}: {} hulls, {:.3} kg", a.out.display(), tool.hulls.len(), tool.mass.mass);
+    Ok(())
+}
+
+fn run_strip(a: StripArgs) -> Result<(), Box<dyn std::error::Error>> {
+    use graspd_sim::render::{make_strip, RenderOptions, StripRequest};
+    let request = StripRequest {
+        task: a.task.parse()?,
+        instance: a.instance,
+        seed: a.seed,
+        start: a.start.parse()?,
+        frames: a.frames,
+        render: {
+            let d = RenderOptions::default();
+            RenderOptions {
+                width: a.width,
+                height: a.height,
+                azimuth_deg: a.azimuth.unwrap_or(d.azimuth_deg),
+                elevation_deg: a.elevation.unwrap_or(d.elevation_deg),
+                distance_m: a.distance,
+                ..d
+            }
+        },
+        gap: 4,
+    };
+    // Hidden when stderr is not a terminal.
+    let bar = indicatif::ProgressBar::new(a.frames as u64 + 1);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{msg:>12} [{bar:30}] {pos}/{len} {elapsed}")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    bar.set_message("episode");
+    bar.enable_steady_tick(std::time::Duration::from_millis(200));
+    let out = make_strip(&request, &a.out, &mut |done, _| {
+        bar.set_message("frames");
+        bar.set_position(done as u64);
+    });
+    bar.finish_and_clear();
+    let out = out?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&out)?);
+    } else {
+        for f in &out.frames {
+            println!("{}  t {:5.2} s", f.path.display(), f.t_s);
+        }
+        println!(
+            "{}  {} × {} px, {} KB  ({} {} seed {}, success {}; episode {:.1} s, render {:.1} s)",
+            out.strip.display(),
+            out.strip_size[0],
+            out.strip_size[1],
+            out.strip_bytes / 1024,
+            serde_json::to_value(out.task)?.as_str().unwrap_or(""),
+            out.instance,
+            out.seed,
+            out.success,
+            out.episode_s,
+            out.render_s
+        );
+    }
     Ok(())
 }
