@@ -78,7 +78,10 @@ fn nail_json_reports_depth_and_the_fixture() {
     let e = &v["results"][0]["episodes"][0];
     assert_eq!(e["success"], true, "{e}");
     assert!(e["depth_m"].as_f64().unwrap() > 0.075, "{e}");
-    assert!(e["strikes"].as_u64().unwrap() >= 8, "{e}");
+    // The strikes stop once the nail is home (3 of the 9 the episode has time for), the hammer still held.
+    assert!(e["strikes"].as_u64().unwrap() >= 2, "{e}");
+    assert!(e["stopped_striking_s"].as_f64().is_some(), "{e}");
+    assert_eq!(e["held_at_end"], true, "{e}");
     let out =
         std::process::Command::new(env!("CARGO_BIN_EXE_sim")).args(["nail", "--category", "mug"]).output().unwrap();
     assert!(!out.status.success());
