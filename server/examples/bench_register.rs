@@ -1,7 +1,8 @@
 //! Registration time per stage on the test views of one category (the
 //! 2,000-point target of the shape-engine issue is a subsample of these).
 //! `cargo run --release --example bench_register -- mug [repeats]`; set
-//! VIEWPOINT=known or VIEWPOINT=unknown to time one of the two cases only.
+//! VIEWPOINT=known or VIEWPOINT=unknown to time one of the two cases only;
+//! REGISTER_OPTIONS='{"race_points": 300}' lays options over the defaults.
 use graspd::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
 use graspd::shape::{builtin, RegisterOptions, Registrar};
 use graspd::tools::{self, Category, Split};
@@ -33,6 +34,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             views.push((cloud, [t.x, t.y, t.z]));
         }
     }
+    let mut base = serde_json::to_value(RegisterOptions::default())?;
+    if let Ok(over) = std::env::var("REGISTER_OPTIONS") {
+        let over: serde_json::Map<String, serde_json::Value> = serde_json::from_str(&over)?;
+        for (k, v) in over {
+            base[k] = v;
+        }
+    }
+    let base: RegisterOptions = serde_json::from_value(base)?;
     let modes: &[bool] = match std::env::var("VIEWPOINT").as_deref() {
         Ok("known") => &[true],
         Ok("unknown") => &[false],
@@ -44,7 +53,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let mut stages = [Vec::new(), Vec::new(), Vec::new(), Vec::new()];
         for _ in 0..repeats {
             for (cloud, vp) in &views {
-                let opts = RegisterOptions { viewpoint: known_viewpoint.then_some(*vp), ..Default::default() };
+                let opts = RegisterOptions { viewpoint: known_viewpoint.then_some(*vp), ..base };
                 let t0 = std::time::Instant::now();
                 let r = registrar.register(cloud, &opts)?;
                 total.push(t0.elapsed().as_secs_f64() * 1e3);
