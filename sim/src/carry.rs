@@ -190,7 +190,7 @@ impl TaskRig {
     ) -> Result<Self, SimError> {
         let plan = match planner.grasp_from() {
             GraspFrom::InProcess => Some(planner.plan(instance)?),
-            GraspFrom::Daemon => None,
+            GraspFrom::Daemon | GraspFrom::Register => None,
         };
         let tool = ToolBody::from_instance(instance, &base.decomposition)?;
         let height_points = sample_points(&instance.mesh, HEIGHT_POINTS, HEIGHT_POINTS_SEED)

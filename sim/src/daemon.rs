@@ -15,10 +15,11 @@
 
 use std::time::{Duration, Instant};
 
-use graspd::grasp::transfer::Similarity;
-use graspd::grasp::Grasp;
+use graspd::grasp::transfer::{solve_transferred, Similarity, TransferredTool};
+use graspd::grasp::{Demonstration, Grasp, GraspSolver, PreGraspOptions, SolveOptions};
 use graspd::hand::HandModel;
-use graspd::tools::Category;
+use graspd::shape::{RegisterOptions, Registrar, ShapeSpace};
+use graspd::tools::{Category, Split};
 use graspd_client::{Client, ClientOptions, CloudOptions, StatusCode, Table};
 use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
 
@@ -77,9 +78,26 @@ pub struct DaemonGrasp {
     pub engine_ms: f64,
 }
 
-/// A connected client of one daemon, with the camera and frame it uses.
+/// Who answers a camera view: a running daemon, or graspd's engine in this
+/// process doing what the daemon's Grasp does (`--grasp-from register`: the
+/// same registration, transfer, solve and pre-grasp, without the transport;
+/// it tells the registration's part in a grasp from the daemon's).
+enum Backend {
+    Client(Box<Client>),
+    Engine(Box<EngineBackend>),
+}
+
+/// The daemon's Grasp done in this process (graspd's `service::engine`).
+struct EngineBackend {
+    registrar: Registrar,
+    demo: Demonstration,
+    demo_keypoints: Vec<Point3<f64>>,
+    canonical_mesh: graspd::geometry::TriMesh,
+}
+
+/// A connected client of one daemon (or the engine in-process), with the camera and frame it uses.
 pub struct DaemonGrasper {
-    client: Client,
+    backend: Backend,
     options: DaemonOptions,
     pub camera: SceneCamera,
     pub lab: LabFrame,
@@ -120,7 +138,41 @@ impl DaemonGrasper {
             )));
         }
         tracing::info!(prefix = %options.prefix, pid = health.pid, version = %health.server_version, "connected to graspd");
-        Ok(Self { client, options, camera, lab })
+        Ok(Self { backend: Backend::Client(Box::new(client)), options, camera, lab })
+    }
+
+    /// No daemon: the camera's views are registered and grasped by graspd's
+    /// engine in this process, in `space` (the simulator's copy), exactly as
+    /// the daemon's Grasp does (same options, the cloud rounded to f32 as on
+    /// the wire). `prefix()` is `in-process`.
+    pub fn in_process(
+        hand: &HandModel,
+        category: Category,
+        space: ShapeSpace,
+        camera: SceneCamera,
+        lab: LabFrame,
+    ) -> Result<Self, SimError> {
+        let err = |e: &dyn std::fmt::Display| SimError::Plan { reason: e.to_string() };
+        let demo = Demonstration::builtin(category).map_err(|e| err(&e))?;
+        let demo_keypoints = demo.keypoints(hand).map_err(|e| err(&e))?;
+        let canonical_mesh = graspd::tools::family(category)
+            .map_err(|e| err(&e))?
+            .into_iter()
+            .find(|i| i.split == Split::Canonical)
+            .ok_or_else(|| err(&"the family has no canonical instance"))?
+            .mesh;
+        let backend = EngineBackend { registrar: Registrar::new(space), demo, demo_keypoints, canonical_mesh };
+        Ok(Self {
+            backend: Backend::Engine(Box::new(backend)),
+            options: DaemonOptions { prefix: "in-process".into(), ..DaemonOptions::default() },
+            camera,
+            lab,
+        })
+    }
+
+    /// Whether the daemon answers (false: the engine in this process).
+    pub fn is_daemon(&self) -> bool {
+        matches!(self.backend, Backend::Client(_))
     }
 
     pub fn prefix(&self) -> &str {
@@ -169,14 +221,23 @@ impl DaemonGrasper {
             table: Some(if with_table { Table::At(table.z as f32) } else { Table::None }),
             ..CloudOptions::default()
         };
+        let tool_from_lab = tool_pose_sim.inverse() * self.lab.sim_from_lab();
+        let client = match &mut self.backend {
+            Backend::Client(client) => client,
+            Backend::Engine(engine) => {
+                let t0 = Instant::now();
+                let mut out = engine.grasp(hand, &cloud, &opts, &tool_from_lab)?;
+                out.latency_ms = 1e3 * t0.elapsed().as_secs_f64();
+                out.engine_ms = out.latency_ms;
+                return Ok(out);
+            }
+        };
         let t0 = Instant::now();
-        let answer = self
-            .client
+        let answer = client
             .grasp_with(category.name(), &cloud, &opts, self.options.timeout)
             .map_err(|e| SimError::Daemon { prefix: self.options.prefix.clone(), reason: call_error(&e) })?;
         let latency_ms = 1e3 * t0.elapsed().as_secs_f64();
-        let timing = self.client.last_call();
-        let tool_from_lab = tool_pose_sim.inverse() * self.lab.sim_from_lab();
+        let timing = client.last_call();
         let (grasp, pregrasp, tool_from_canonical) = grasp_in_tool_frame(hand, &answer, &tool_from_lab)?;
         Ok(DaemonGrasp {
             grasp,
@@ -191,6 +252,68 @@ impl DaemonGrasper {
             cloud_points: cloud.len(),
             latency_ms,
             engine_ms: timing.compute_ns as f64 * 1e-6,
+        })
+    }
+}
+
+impl EngineBackend {
+    /// What the daemon's Grasp does with `cloud` (lab frame) and `opts`
+    /// (graspd `service::engine::Engine::grasp`), the answer moved into the
+    /// tool's frame by `tool_from_lab`. Times are left at zero.
+    fn grasp(
+        &self,
+        hand: &HandModel,
+        cloud: &[[f32; 3]],
+        opts: &CloudOptions,
+        tool_from_lab: &Isometry3<f64>,
+    ) -> Result<DaemonGrasp, SimError> {
+        let err = |what: &str, e: &dyn std::fmt::Display| SimError::Plan { reason: format!("{what}: {e}") };
+        let points: Vec<Point3<f64>> =
+            cloud.iter().map(|p| Point3::new(p[0] as f64, p[1] as f64, p[2] as f64)).collect();
+        let register = RegisterOptions {
+            up: opts.up.map(|u| u.map(f64::from)),
+            viewpoint: opts.viewpoint.map(|u| u.map(f64::from)),
+            seed: opts.seed,
+            ..RegisterOptions::default()
+        };
+        let reg = self.registrar.register(&points, &register).map_err(|e| err("cannot register the cloud", &e))?;
+        let tool =
+            TransferredTool::from_registration(&self.registrar, &reg, &self.demo_keypoints, &self.canonical_mesh)
+                .map_err(|e| err("cannot carry the demonstration onto the registered shape", &e))?;
+        let table_z = match opts.table {
+            Some(Table::At(z)) => Some(z as f64),
+            _ => None,
+        };
+        let mut solver = GraspSolver::new(hand, SolveOptions { seed: opts.seed, ..SolveOptions::default() });
+        let out = solve_transferred(&mut solver, &self.demo, &tool, table_z, &PreGraspOptions::default())
+            .map_err(|e| err("cannot solve the grasp", &e))?;
+        let carry = |g: &Grasp| Grasp::new(hand, tool_from_lab * g.wrist_pose_world, g.actuated.clone());
+        let pose = Similarity::of_registration(&reg);
+        let tool_from_canonical = tool_from_lab * pose.rigid();
+        let mut warnings = Vec::new();
+        if !reg.fit.confident {
+            warnings.push("registration_not_confident".to_owned());
+        }
+        if !out.pregrasp.collision_free {
+            warnings.push("pregrasp_in_collision".to_owned());
+        }
+        Ok(DaemonGrasp {
+            grasp: carry(&out.grasp),
+            pregrasp: carry(&out.pregrasp.grasp),
+            tool_from_canonical: Similarity {
+                rotation: tool_from_canonical.rotation,
+                translation: tool_from_canonical.translation.vector,
+                scale: reg.scale,
+            },
+            latent: reg.latent.clone(),
+            task_space_distance_cm: out.task_space_distance_cm,
+            pregrasp_collision_free: out.pregrasp.collision_free,
+            registration_confident: reg.fit.confident,
+            ambiguous_pose: reg.fit.ambiguous_pose,
+            warnings,
+            cloud_points: cloud.len(),
+            latency_ms: 0.0,
+            engine_ms: 0.0,
         })
     }
 }

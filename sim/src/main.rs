@@ -105,8 +105,10 @@ struct BenchArgs {
 #[derive(clap::Args)]
 struct GraspArgs {
     /// `inprocess` (graspd's engine in this process, the tool's training
-    /// latent) or `daemon` (a running `graspd serve`, from the scene
-    /// camera's view of the tool; needed for test instances).
+    /// latent), `daemon` (a running `graspd serve`, from the scene
+    /// camera's view of the tool; needed for test instances) or `register`
+    /// (the camera's view registered and grasped in this process as the
+    /// daemon does it: no daemon, no transport).
     #[arg(long, default_value = "inprocess")]
     grasp_from: String,
     /// `pregrasp` (the generalised grasp's pre-grasp), `canonical` (w/o GG:
@@ -291,20 +293,21 @@ fn make_planner(
     let from: GraspFrom = a.grasp_from.parse()?;
     let start: StartMode = a.start.parse()?;
     let planner = GraspPlanner::new(asset.model(), category, seed)?.with_start(start);
+    if !(a.camera_noise_scale.is_finite() && a.camera_noise_scale >= 0.0) {
+        return Err(format!("--camera-noise-scale {}: 0 or more", a.camera_noise_scale).into());
+    }
+    let mut camera = graspd_sim::camera::SceneCamera::default();
+    camera.noise.sigma_m *= a.camera_noise_scale;
+    camera.noise.quadratic_per_m *= a.camera_noise_scale;
     Ok(match from {
         GraspFrom::InProcess => planner,
+        GraspFrom::Register => planner.with_engine_camera(camera, graspd_sim::camera::LabFrame::default())?,
         GraspFrom::Daemon => {
             let options = graspd_sim::daemon::DaemonOptions {
                 prefix: a.daemon_prefix.clone(),
                 timeout: std::time::Duration::from_millis(a.daemon_timeout_ms),
                 ..Default::default()
             };
-            if !(a.camera_noise_scale.is_finite() && a.camera_noise_scale >= 0.0) {
-                return Err(format!("--camera-noise-scale {}: 0 or more", a.camera_noise_scale).into());
-            }
-            let mut camera = graspd_sim::camera::SceneCamera::default();
-            camera.noise.sigma_m *= a.camera_noise_scale;
-            camera.noise.quadratic_per_m *= a.camera_noise_scale;
             let daemon = graspd_sim::daemon::DaemonGrasper::connect(
                 options,
                 category,

@@ -14,7 +14,10 @@
 //!     (paper Table I) does. Test tools have no latent: they need the daemon;
 //! - `daemon`: a running `graspd serve`, per episode, from the scene depth
 //!   camera's view of the tool where it stands ([`crate::daemon`]): any tool
-//!   of the family, test tools included (paper Table III).
+//!   of the family, test tools included (paper Table III);
+//! - `register`: the same view registered and grasped by graspd's engine in
+//!   this process, as the daemon does it (no daemon needed; the same grasps
+//!   but for the transport).
 //!
 //! Where the hand starts ([`StartMode`], the paper's ablations, Table II):
 //!
@@ -44,6 +47,7 @@ use graspd::tools::{Category, Instance, Split};
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 
+use crate::camera::{LabFrame, SceneCamera};
 use crate::daemon::DaemonGrasper;
 use crate::engine::SimError;
 
@@ -58,6 +62,7 @@ pub fn spaces_dir() -> PathBuf {
 pub enum GraspFrom {
     InProcess,
     Daemon,
+    Register,
 }
 
 impl GraspFrom {
@@ -65,6 +70,7 @@ impl GraspFrom {
         match self {
             Self::InProcess => "inprocess",
             Self::Daemon => "daemon",
+            Self::Register => "register",
         }
     }
 }
@@ -75,7 +81,10 @@ impl FromStr for GraspFrom {
         match s {
             "inprocess" => Ok(Self::InProcess),
             "daemon" => Ok(Self::Daemon),
-            other => Err(SimError::Config { reason: format!("grasp source `{other}`: `inprocess` or `daemon`") }),
+            "register" => Ok(Self::Register),
+            other => {
+                Err(SimError::Config { reason: format!("grasp source `{other}`: `inprocess`, `daemon` or `register`") })
+            }
         }
     }
 }
@@ -147,7 +156,8 @@ pub struct GraspPlan {
     /// graspd's check: no hand sphere pierces the tool or the table at the pre-grasp.
     pub pregrasp_collision_free: bool,
     /// "demonstration" (canonical tool), "transferred" (through the shape
-    /// space), "daemon" (graspd serve, from the camera's view) or
+    /// space), "daemon" (graspd serve, from the camera's view), "registered"
+    /// (the camera's view registered in this process, `--grasp-from register`) or
     /// "canonical" (the demonstration carried by the tool's pose: w/o GG).
     pub source: &'static str,
     /// Paper Table I metric of the grasp against the generalised
@@ -264,11 +274,18 @@ impl GraspPlanner {
         self
     }
 
+    /// Grasps from the camera's view as the daemon makes them, by graspd's
+    /// engine in this process ([`DaemonGrasper::in_process`]): `--grasp-from register`.
+    pub fn with_engine_camera(self, camera: SceneCamera, lab: LabFrame) -> Result<Self, SimError> {
+        let grasper = DaemonGrasper::in_process(&self.hand, self.category, self.space.clone(), camera, lab)?;
+        Ok(self.with_daemon(grasper))
+    }
+
     pub fn grasp_from(&self) -> GraspFrom {
-        if self.daemon.is_some() {
-            GraspFrom::Daemon
-        } else {
-            GraspFrom::InProcess
+        match &self.daemon {
+            Some(d) if d.is_daemon() => GraspFrom::Daemon,
+            Some(_) => GraspFrom::Register,
+            None => GraspFrom::InProcess,
         }
     }
 
@@ -403,7 +420,7 @@ impl GraspPlanner {
                     grasp: d.grasp,
                     pregrasp: d.pregrasp,
                     pregrasp_collision_free: d.pregrasp_collision_free,
-                    source: "daemon",
+                    source: if daemon.is_daemon() { "daemon" } else { "registered" },
                     task_space_distance_cm: d.task_space_distance_cm,
                     demo_keypoints: targets,
                     latent: d.latent,

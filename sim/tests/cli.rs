@@ -129,6 +129,27 @@ fn test_instances_need_the_daemon() {
     assert!(err.contains("--grasp-from daemon"), "{err}");
 }
 
+/// `--grasp-from register`: the camera's view registered and grasped in
+/// this process as the daemon would, so a test tool (no training latent)
+/// is grasped without a daemon; the episode reports the registration.
+#[test]
+fn the_register_path_grasps_a_test_tool_without_a_daemon() {
+    let out = Command::new(env!("CARGO_BIN_EXE_sim"))
+        .args(["place", "--grasp-from", "register", "--instances", "mug_test_01", "--episodes", "1", "--json"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["grasp_from"], "register", "{v}");
+    let row = &v["results"][0];
+    assert_eq!(row["grasp_source"], "registered", "{row}");
+    let g = &row["episodes"][0]["grasp"];
+    assert!(g["cloud_points"].as_u64().is_some_and(|n| n > 1000), "{g}");
+    assert!(g["registered_scale"].as_f64().is_some_and(|s| s > 0.5 && s < 2.0), "{g}");
+    assert!(g["registered_offset_m"].as_f64().is_some_and(|m| m < 0.02), "{g}");
+    assert!(g["daemon_engine_ms"].as_f64().is_some_and(|ms| ms > 0.0), "{g}");
+}
+
 /// No daemon under the prefix: the run stops at once with an error naming
 /// the prefix and what to start.
 #[test]

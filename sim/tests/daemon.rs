@@ -35,6 +35,11 @@ struct Daemon {
 
 impl Daemon {
     fn start(name: &str) -> Daemon {
+        Self::start_with(name, &["mug"])
+    }
+
+    /// A daemon serving `categories`.
+    fn start_with(name: &str, categories: &[&str]) -> Daemon {
         let graspd = graspd_binary();
         let prefix = format!("graspd_sim_test_{}_{name}", std::process::id());
         let dir = tempfile::tempdir().unwrap();
@@ -42,7 +47,7 @@ impl Daemon {
         std::fs::write(
             &cfg,
             format!(
-                "service_prefix = \"{prefix}\"\ncategories = [\"mug\"]\nworkers = 1\nhousekeeping_ms = 100\nslow_request_ms = 5000.0\n"
+                "service_prefix = \"{prefix}\"\ncategories = {categories:?}\nworkers = 1\nhousekeeping_ms = 100\nslow_request_ms = 5000.0\n"
             ),
         )
         .unwrap();
@@ -152,4 +157,62 @@ fn a_place_mug_episode_takes_its_grasp_from_the_daemon() {
     // The episode behaved: the mug was lifted clear of the table, and ended near its goal.
     assert!(e["clearance_after_lift_m"].as_f64().unwrap() > 0.05, "{e}");
     assert!(e["final_distance_m"].as_f64().unwrap() < 0.10, "{e}");
+}
+
+/// `--grasp-from register` does what the daemon's Grasp does, in this
+/// process: for the same camera view (a training hammer at a Drive-nail
+/// start, the table given) the daemon's answer and the in-process engine's
+/// are the same grasp, pre-grasp, registered pose and latent. So a gap
+/// between daemon grasps and in-process grasps from the tool's training
+/// latent is the registration's, not the transport's; and the register path
+/// (which runs without a daemon) stands in for it in measurements.
+#[test]
+fn the_register_path_gives_the_daemons_grasp() {
+    use graspd::tools::{self, Category};
+    use graspd_sim::camera::{LabFrame, SceneCamera};
+    use graspd_sim::daemon::{DaemonGrasper, DaemonOptions};
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+
+    let daemon = Daemon::start_with("register", &["hammer"]);
+    let _ = daemon.client();
+    let hand = graspd::hand::HandModel::default_sih().unwrap();
+    let space =
+        graspd::shape::builtin::load_or_build(Category::Hammer, &graspd_sim::plan::spaces_dir(), |_, _| {}).unwrap();
+    let options =
+        DaemonOptions { prefix: daemon.prefix.clone(), connect_timeout: Duration::from_secs(30), ..Default::default() };
+    let mut remote = DaemonGrasper::connect(
+        options,
+        Category::Hammer,
+        space.modes.len(),
+        SceneCamera::default(),
+        LabFrame::default(),
+    )
+    .unwrap();
+    let mut local =
+        DaemonGrasper::in_process(&hand, Category::Hammer, space, SceneCamera::default(), LabFrame::default()).unwrap();
+    assert!(remote.is_daemon() && !local.is_daemon());
+    let tool = tools::family(Category::Hammer).unwrap().into_iter().find(|i| i.name == "hammer_train_00").unwrap();
+    let start = Isometry3::from_parts(
+        Translation3::new(0.01, -0.02, 0.0),
+        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.1),
+    );
+    for seed in [0, 1] {
+        let a = remote.grasp(&hand, Category::Hammer, &tool.mesh, &start, 0.0, true, seed).unwrap();
+        let b = local.grasp(&hand, Category::Hammer, &tool.mesh, &start, 0.0, true, seed).unwrap();
+        assert_eq!(a.cloud_points, b.cloud_points);
+        for (x, y) in [(&a.grasp, &b.grasp), (&a.pregrasp, &b.pregrasp)] {
+            let dt = (x.wrist_pose_world.translation.vector - y.wrist_pose_world.translation.vector).norm();
+            let dr = x.wrist_pose_world.rotation.angle_to(&y.wrist_pose_world.rotation);
+            assert!(dt < 1e-5 && dr < 1e-4, "seed {seed}: wrists {dt} m, {dr} rad apart");
+            for (p, q) in x.actuated.iter().zip(&y.actuated) {
+                assert!((p - q).abs() < 1e-4, "seed {seed}: joints {:?} vs {:?}", x.actuated, y.actuated);
+            }
+        }
+        assert!((a.tool_from_canonical.scale - b.tool_from_canonical.scale).abs() < 1e-6);
+        assert!((a.tool_from_canonical.translation - b.tool_from_canonical.translation).norm() < 1e-6);
+        for (p, q) in a.latent.iter().zip(&b.latent) {
+            assert!((p - q).abs() < 1e-6, "seed {seed}: latents {:?} vs {:?}", a.latent, b.latent);
+        }
+        assert_eq!(a.pregrasp_collision_free, b.pregrasp_collision_free);
+    }
 }
