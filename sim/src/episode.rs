@@ -433,7 +433,6 @@ pub fn lift_instance(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::tool::ToolMaterial;
     use graspd::tools::{self, Category, Split};
 
     fn planner(asset: &HandAsset) -> GraspPlanner {
@@ -462,17 +461,10 @@ mod tests {
     fn an_open_hand_lifts_nothing() {
         let asset = HandAsset::default_sih().unwrap();
         let hand = asset.model();
-        let mug = tools::instance(Category::Mug, "mug_canonical").unwrap();
+        let (mug, tool) = crate::tool::canonical_mug();
         let mut plan = planner(&asset).plan(&mug).unwrap();
         plan.grasp.actuated = hand.open_hand().to_vec();
         plan.pregrasp.actuated = hand.open_hand().to_vec();
-        let tool = ToolBody::from_mesh(
-            "mug",
-            &mug.mesh,
-            ToolMaterial::for_category(Category::Mug),
-            &DecompositionOptions::default(),
-        )
-        .unwrap();
         let setup = LiftSetup::default();
         let spec = SceneSpec {
             name: "open_hand".into(),

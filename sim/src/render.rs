@@ -744,7 +744,6 @@ pub fn make_strip(
 mod tests {
     use super::*;
     use crate::scene::{SceneSpec, Table};
-    use crate::tool::{DecompositionOptions, ToolBody, ToolMaterial};
     use graspd::tools::{self, Category};
 
     /// The renderer, or `None` (with a note on stderr) where this machine
@@ -772,14 +771,7 @@ mod tests {
     /// sky above the table's far edge is the background colour.
     #[test]
     fn a_frame_has_the_tool_where_it_is_and_background_elsewhere() {
-        let mug = tools::instance(Category::Mug, "mug_canonical").unwrap();
-        let body = ToolBody::from_mesh(
-            "mug",
-            &mug.mesh,
-            ToolMaterial::for_category(Category::Mug),
-            &DecompositionOptions::default(),
-        )
-        .unwrap();
+        let (mug, body) = crate::tool::canonical_mug();
         let pose = Isometry3::from_parts(
             Translation3::new(0.07, -0.04, 0.0),
             UnitQuaternion::from_euler_angles(0.0, 0.0, 0.6),

@@ -174,8 +174,6 @@ impl ToolIndex {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::tool::{DecompositionOptions, ToolMaterial};
-    use graspd::tools::{self, Category};
     use nalgebra::{Translation3, UnitQuaternion};
 
     /// The canonical mug, dropped tilted from 5 cm, comes to rest upright on
@@ -183,14 +181,7 @@ mod tests {
     /// make a stable resting tool.
     #[test]
     fn a_dropped_mug_comes_to_rest_upright_on_the_table() {
-        let mug = tools::instance(Category::Mug, "mug_canonical").unwrap();
-        let body = ToolBody::from_mesh(
-            "mug",
-            &mug.mesh,
-            ToolMaterial::for_category(Category::Mug),
-            &DecompositionOptions::default(),
-        )
-        .unwrap();
+        let (_, body) = crate::tool::canonical_mug();
         let start = Isometry3::from_parts(
             Translation3::new(0.05, -0.03, 0.05),
             UnitQuaternion::from_euler_angles(0.15, -0.1, 0.7),

@@ -250,6 +250,22 @@ impl ToolBody {
     }
 }
 
+/// The canonical mug and its body, decomposed with the default options:
+/// the tool most of the simulator's tests stand on.
+#[cfg(test)]
+pub(crate) fn canonical_mug() -> (graspd::tools::Instance, ToolBody) {
+    use graspd::tools::{self, Category};
+    let mug = tools::instance(Category::Mug, "mug_canonical").unwrap();
+    let body = ToolBody::from_mesh(
+        "mug",
+        &mug.mesh,
+        ToolMaterial::for_category(Category::Mug),
+        &DecompositionOptions::default(),
+    )
+    .unwrap();
+    (mug, body)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -295,14 +311,7 @@ mod tests {
     /// hull would fill both and the fingers could not go through the handle).
     #[test]
     fn canonical_mug_decomposes_into_hulls_that_keep_its_openings() {
-        let mug = tools::instance(Category::Mug, "mug_canonical").unwrap();
-        let body = ToolBody::from_mesh(
-            "mug",
-            &mug.mesh,
-            ToolMaterial::for_category(Category::Mug),
-            &DecompositionOptions::default(),
-        )
-        .unwrap();
+        let (mug, body) = canonical_mug();
         assert!(body.mass.mass > 0.2 && body.mass.mass < 0.5, "mug mass {} kg", body.mass.mass);
         assert!(body.hulls.len() >= 4, "{} hulls", body.hulls.len());
 
