@@ -198,7 +198,7 @@ impl GraspPlan {
 /// How an episode's grasp was obtained (for the reports).
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct GraspInfo {
-    /// `inprocess` or `daemon`.
+    /// `inprocess`, `daemon` or `register`.
     pub grasp_from: &'static str,
     /// `pregrasp`, `canonical` or `neutral`.
     pub start: &'static str,
@@ -206,15 +206,16 @@ pub struct GraspInfo {
     pub source: &'static str,
     pub task_space_distance_cm: f64,
     pub pregrasp_collision_free: bool,
-    /// Daemon only: the Grasp call's round trip as the client sees it
-    /// (cloud into shared memory, sent, answered), and the daemon's engine time, ms.
+    /// From a camera view only (daemon or register): the Grasp call's round
+    /// trip as the client sees it (daemon: cloud into shared memory, sent,
+    /// answered; register: the in-process call), and the engine's time, ms.
     pub latency_ms: Option<f64>,
     pub daemon_engine_ms: Option<f64>,
-    /// Daemon only: points of the camera's view, and the registration's verdicts.
+    /// From a camera view only: points of the view, and the registration's verdicts.
     pub cloud_points: Option<usize>,
     pub registration_confident: Option<bool>,
     pub ambiguous_pose: Option<bool>,
-    /// Daemon only: how far the registered canonical frame is from the
+    /// From a camera view only: how far the registered canonical frame is from the
     /// tool's own frame (its origin's offset, m; its turn, rad) and the
     /// registered scale. A tool's mesh is given in its category's canonical
     /// frame, so a good registration is near zero offset and turn (a
