@@ -140,11 +140,15 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                 ..Default::default()
             };
 
+            // The demonstration's hand keypoints, whose transfer a grasp depends on.
+            let hand = graspd::hand::HandModel::default_sih()?;
+            let demo = graspd::grasp::Demonstration::builtin(category)?;
+            let grasp_targets: Vec<[f64; 3]> = demo.keypoints(&hand)?.iter().map(|p| [p.x, p.y, p.z]).collect();
             let mut reports = Vec::new();
             for &split in &splits {
                 let insts: Vec<_> = family.iter().filter(|i| i.split == split).collect();
                 let bar = progress_bar((insts.len() * views) as u64, split.name());
-                reports.push(evaluate(&registrar, &insts, split, &opts, || bar.inc(1)));
+                reports.push(evaluate(&registrar, &insts, split, &grasp_targets, &opts, || bar.inc(1)));
                 bar.finish_and_clear();
             }
             let out = serde_json::json!({
@@ -164,6 +168,16 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                         r.canonical.keypoint_error_mm.median, r.canonical.keypoint_error_mm.p90,
                         r.cpd_partial.keypoint_error_mm.median, r.cpd_partial.keypoint_error_mm.p90,
                         r.ours.chamfer_mm.median, r.fit_ms.p50, r.fit_ms.p99
+                    );
+                    if let (Some(o), Some(c)) = (&r.ours.grasp_target_error_mm, &r.canonical.grasp_target_error_mm) {
+                        println!(
+                            "  grasp targets (the demonstration's hand keypoints carried onto the tool): median {:.1} mm p90 {:.1} mm (canonical {:.1}/{:.1})",
+                            o.median, o.p90, c.median, c.p90
+                        );
+                    }
+                    println!(
+                        "  keypoint depth bias (along the view; negative: toward the camera): median {:+.2} mm",
+                        r.keypoint_depth_bias_mm.median
                     );
                     if r.skipped_views > 0 {
                         println!("  {} views not scored (fewer than 50 points of the tool seen)", r.skipped_views);

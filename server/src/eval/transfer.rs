@@ -8,6 +8,14 @@
 //! the same views: `canonical` (our pose fit, latent held at zero: the
 //! undeformed canonical) and `cpd_partial` (non-rigid CPD of the canonical,
 //! placed by that pose fit, straight onto the partial view).
+//!
+//! Semantic keypoints are a few named points on the tool; a grasp depends on
+//! others: the demonstration's hand keypoints carried onto the tool (the grasp
+//! targets, some centimetres off the surface). On training instances their
+//! truth is defined (the instance's own latent, at the true pose, as `graspd
+//! eval grasp` uses it), so the report adds their error there: a registration
+//! that trades the latent's size modes for its uniform scale can keep the
+//! semantic keypoints and still move the fingers' targets.
 
 use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
 use crate::geometry::sample_points;
@@ -68,6 +76,11 @@ pub struct Percentiles {
 pub struct MethodErrors {
     pub keypoint_error_mm: Percentiles,
     pub chamfer_mm: Percentiles,
+    /// The demonstration's hand keypoints carried onto the tool, against the
+    /// same carried through the instance's true latent and pose (training
+    /// instances only: test tools have no true latent; absent when none was scored).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub grasp_target_error_mm: Option<Percentiles>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -89,6 +102,12 @@ pub struct SplitReport {
     /// Share of views flagged `ambiguous_pose`, and the keypoint error over the others.
     pub ambiguous_fraction: f64,
     pub unambiguous_keypoint_error_mm: Percentiles,
+    /// Per view, the mean keypoint error vector (ours) along the camera's
+    /// viewing axis; negative: the registered keypoints sit nearer the camera
+    /// than the truth. A partial view is seen from one side only, so a fit that
+    /// lets the hidden side pull on the seen surface shows here as a bias
+    /// that averaging over views does not remove.
+    pub keypoint_depth_bias_mm: Percentiles,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -101,6 +120,10 @@ pub struct FitTimes {
 struct Trial {
     points: usize,
     kp: [Vec<f64>; 3],
+    /// Mean keypoint error (ours) along the viewing axis, mm.
+    depth_bias_mm: f64,
+    /// Grasp-target errors (ours, canonical), empty without a true latent.
+    targets: [Vec<f64>; 2],
     chamfer: [f64; 3],
     fit_ms: f64,
     confident: bool,
@@ -108,11 +131,13 @@ struct Trial {
     rotation_error_deg: f64,
 }
 
-/// Runs the evaluation on the instances of one split.
+/// Runs the evaluation on the instances of one split. `grasp_targets` are
+/// the demonstration's hand keypoints in the canonical frame (may be empty).
 pub fn evaluate(
     registrar: &Registrar,
     instances: &[&Instance],
     split: Split,
+    grasp_targets: &[P3],
     opts: &TransferEvalOptions,
     mut progress: impl FnMut(),
 ) -> SplitReport {
@@ -122,16 +147,20 @@ pub fn evaluate(
     for inst in instances {
         let truth_surface = sample_points(&inst.mesh, 4000, 99).map(|p| cpd::to_p3(&p)).unwrap_or_default();
         for view in 0..opts.views {
-            match trial(registrar, inst, &truth_surface, view, opts, &mut rng) {
+            match trial(registrar, inst, &truth_surface, grasp_targets, view, opts, &mut rng) {
                 Some(t) => trials.push(t),
                 None => skipped_views += 1,
             }
             progress();
         }
     }
-    let collect = |k: usize| MethodErrors {
-        keypoint_error_mm: percentiles(trials.iter().flat_map(|t| t.kp[k].iter().copied()).collect()),
-        chamfer_mm: percentiles(trials.iter().map(|t| t.chamfer[k]).collect()),
+    let collect = |k: usize| {
+        let targets: Vec<f64> = trials.iter().filter_map(|t| t.targets.get(k)).flatten().copied().collect();
+        MethodErrors {
+            keypoint_error_mm: percentiles(trials.iter().flat_map(|t| t.kp[k].iter().copied()).collect()),
+            chamfer_mm: percentiles(trials.iter().map(|t| t.chamfer[k]).collect()),
+            grasp_target_error_mm: (!targets.is_empty()).then(|| percentiles(targets)),
+        }
     };
     let times = percentiles_raw(trials.iter().map(|t| t.fit_ms).collect());
     SplitReport {
@@ -150,6 +179,7 @@ pub fn evaluate(
         unambiguous_keypoint_error_mm: percentiles(
             trials.iter().filter(|t| !t.ambiguous).flat_map(|t| t.kp[0].iter().copied()).collect(),
         ),
+        keypoint_depth_bias_mm: percentiles(trials.iter().map(|t| t.depth_bias_mm).collect()),
     }
 }
 
@@ -157,6 +187,7 @@ fn trial(
     registrar: &Registrar,
     inst: &Instance,
     truth_surface: &[P3],
+    grasp_targets: &[P3],
     view: usize,
     opts: &TransferEvalOptions,
     rng: &mut rand_chacha::ChaCha8Rng,
@@ -182,6 +213,13 @@ fn trial(
     };
     let truth_kp: Vec<P3> = inst.keypoints.iter().map(|k| pose_pt(&k.position)).collect();
     let truth_world: Vec<P3> = truth_surface.iter().map(pose_pt).collect();
+    let space = &registrar.space;
+    let truth_targets: Option<Vec<P3>> = space
+        .instances
+        .iter()
+        .position(|n| *n == inst.name)
+        .filter(|_| !grasp_targets.is_empty())
+        .map(|k| space.deform_anchored(grasp_targets, &space.train_latents[k]).iter().map(pose_pt).collect());
 
     let scene = Scene::new(&mesh, world_from_tool, Some(0.0)).ok()?;
     let centre = world_from_tool * Point3::from(mesh.aabb().map(|(lo, hi)| (lo.coords + hi.coords) / 2.0)?);
@@ -244,12 +282,29 @@ fn trial(
     let cpd_shape = nr.field.apply(&cpd::to_p3(&placed_surface));
 
     let rotation_error_deg = (reg.rotation_cloud_from_canonical * rot.inverse()).angle().to_degrees();
-    let kp_err = |pred: &[P3]| {
-        pred.iter().zip(&truth_kp).map(|(a, b)| crate::shape::estep::dist2(a, b).sqrt() * 1e3).collect::<Vec<_>>()
+    let err = |pred: &[P3], truth: &[P3]| {
+        pred.iter().zip(truth).map(|(a, b)| crate::shape::estep::dist2(a, b).sqrt() * 1e3).collect::<Vec<_>>()
+    };
+    let kp_err = |pred: &[P3]| err(pred, &truth_kp);
+    let depth_bias_mm = {
+        let view_axis = cam_pose.rotation * Vector3::z();
+        let n = ours_kp.len().max(1) as f64;
+        let sum: f64 =
+            ours_kp.iter().zip(&truth_kp).map(|(a, b)| (Vector3::from(*a) - Vector3::from(*b)).dot(&view_axis)).sum();
+        1e3 * sum / n
+    };
+    let targets = match &truth_targets {
+        Some(truth) => [
+            err(&registrar.transfer(&reg, grasp_targets), truth),
+            err(&registrar.transfer(&canon, grasp_targets), truth),
+        ],
+        None => [Vec::new(), Vec::new()],
     };
     Some(Trial {
         points: cloud.len(),
         kp: [kp_err(&ours_kp), kp_err(&canon_kp), kp_err(&cpd_kp)],
+        depth_bias_mm,
+        targets,
         chamfer: [chamfer_mm(&ours_shape, &truth_world), chamfer_mm(&canon_shape, &truth_world), chamfer_mm(&cpd_shape, &truth_world)],
         fit_ms,
         confident: reg.fit.confident,
@@ -264,6 +319,9 @@ fn trial(
                 inst.name, t.points, t.ambiguous, t.rotation_error_deg, reg.scale, reg.fit.inlier_fraction, mean(&t.kp[0]), mean(&t.kp[1]), mean(&t.kp[2]), t.fit_ms
             );
             eprintln!("   ours per keypoint {:?}  canonical {:?}", t.kp[0].iter().map(|x| x.round()).collect::<Vec<_>>(), t.kp[1].iter().map(|x| x.round()).collect::<Vec<_>>());
+            if !t.targets[0].is_empty() {
+                eprintln!("   grasp targets mean ours {:.1} canonical {:.1} mm, latent {:?}", mean(&t.targets[0]), mean(&t.targets[1]), reg.latent.iter().map(|l| (l * 100.0).round() / 100.0).collect::<Vec<_>>());
+            }
         }
     })
 }
