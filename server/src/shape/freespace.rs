@@ -86,6 +86,14 @@ impl FreeSpace {
         Some(j as usize * self.dims[0] + i as usize)
     }
 
+    /// Whether the camera saw a surface in front of `p`, nearer by more than
+    /// `tol` along its ray: `p` is hidden behind it and cannot have produced an
+    /// observation (a mug's far wall behind its near one, a handle behind the body).
+    pub fn hidden_behind_seen(&self, p: &P3, tol: f64) -> bool {
+        let Some((q, r)) = project(&self.axes, &self.viewpoint, p) else { return false };
+        self.cell(q).is_some_and(|c| self.min_range[c] < r - tol)
+    }
+
     /// Fraction of camera-facing model points that the view contradicts.
     /// `normals_world` are the points' outward normals in the cloud frame.
     pub fn violation_fraction(&self, points: &[P3], normals_world: impl Iterator<Item = Vector3<f64>>) -> f64 {
