@@ -1,7 +1,8 @@
 //! Diagnostic: the in-process grasp (training latent, true pose) beside the
 //! grasp from the camera's view (registered as the daemon does), in the
 //! tool's frame, and Drive-nail episodes with hybrids of the two.
-//! `cargo run --release -p graspd-sim --example grasp_gap -- hammer_train_00 0`
+//! `cargo run --release -p graspd-sim --example grasp_gap -- hammer_train_00 0`;
+//! a mug (`mug_train_01`) runs Place-mug episodes instead.
 
 use graspd::grasp::transfer::{solve_transferred, Similarity, TransferredTool};
 use graspd::grasp::{Demonstration, GraspSolver, PreGraspOptions, SolveOptions, ToolCollider};
@@ -12,6 +13,7 @@ use graspd_sim::carry::TaskRig;
 use graspd_sim::daemon::DaemonGrasper;
 use graspd_sim::hand::HandAsset;
 use graspd_sim::nail::{face_of, run_nail, NailFixture, NailSetup};
+use graspd_sim::place::{run_place, PlaceSetup};
 use graspd_sim::plan::{GraspPlan, GraspPlanner, HandStart};
 use nalgebra::{Isometry3, Point3};
 
@@ -33,7 +35,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let seeds: Vec<u64> = args.get(2).map_or(vec![0], |s| s.split(',').map(|v| v.parse().unwrap()).collect());
     let asset = HandAsset::default_sih()?;
     let hand = asset.model().clone();
-    let category = Category::Hammer;
+    let category = if name.starts_with("mug") { Category::Mug } else { Category::Hammer };
     let family = tools::family(category)?;
     let instance = family.iter().find(|i| i.name == name).unwrap().clone();
     let canonical = family.iter().find(|i| i.split == Split::Canonical).unwrap().clone();
@@ -49,17 +51,23 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         DaemonGrasper::in_process(&hand, category, space.clone(), SceneCamera::default(), LabFrame::default())?;
     let setup = NailSetup::default();
     let table_z = graspd_sim::scene::Table::default().top_z;
-    let face = face_of(&instance)?;
+    let place = PlaceSetup::default();
+    let is_mug = category == Category::Mug;
+    let face = if is_mug { Default::default() } else { face_of(&instance)? };
     let board = setup.ranges.sample(0, table_z).board;
-    let mut rig = TaskRig::build(
-        &asset,
-        &mut planner,
-        &instance,
-        &setup.base,
-        "nail",
-        setup.fixture.bodies(&board),
-        NailFixture::contact(),
-    )?;
+    let mut rig = if is_mug {
+        TaskRig::build(&asset, &mut planner, &instance, &place.base, "place", Vec::new(), Vec::new())?
+    } else {
+        TaskRig::build(
+            &asset,
+            &mut planner,
+            &instance,
+            &setup.base,
+            "nail",
+            setup.fixture.bodies(&board),
+            NailFixture::contact(),
+        )?
+    };
     let true_tool = TransferredTool::from_latent(&space, &true_latent, &kp, &canonical.mesh)?;
     println!("true registered-shape lowest z (tool frame) {:.4}", true_tool.lowest_z());
     println!("mode σ {:?}", space.variances.iter().map(|v| format!("{:.2}", v.sqrt())).collect::<Vec<_>>());
@@ -121,8 +129,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     for &seed in &seeds {
         let episode = setup.ranges.sample(seed, table_z);
-        let d = grasper.grasp(&hand, category, &instance.mesh, &episode.start, table_z, demo.table, seed)?;
-        let table_tool = (episode.start.inverse() * Point3::new(0.0, 0.0, table_z)).z;
+        let place_episode = place.ranges.sample(seed, table_z);
+        let start = if is_mug { place_episode.start } else { episode.start };
+        let d = grasper.grasp(&hand, category, &instance.mesh, &start, table_z, demo.table, seed)?;
+        let table_tool = (start.inverse() * Point3::new(0.0, 0.0, table_z)).z;
         let s = &d.tool_from_canonical;
         println!(
             "seed {seed}: reg offset {:.1} mm ({:.1} {:.1} {:.1}) turn {:.2}° scale {:.4}; table in tool frame {:.4}",
@@ -187,6 +197,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 .collect();
             sd.sort_by(f64::total_cmp);
             let n = sd.len();
+            if n == 0 {
+                println!("  no true surface within 6 cm of the wrist ({label})");
+                continue;
+            }
             println!("  true surface within 6 cm of the wrist → {label} shape signed mm: p10 {:.1} p50 {:.1} p90 {:.1} (n {n})", sd[n / 10], sd[n / 2], sd[9 * n / 10]);
         }
         println!("  true surface → nearest vertex of reg shape mm p50 {:.1} p90 {:.1}; of true-latent shape p50 {:.1} p90 {:.1}", e[1500], e[2700], e2[1500], e2[2700]);
@@ -283,6 +297,26 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         for (what, plan) in variants {
             if trace_on {
                 trace_close(&rig, &hand, &plan, &episode.start, &setup)?;
+            }
+            if is_mug {
+                let o = run_place(
+                    &rig.scene,
+                    &mut rig.data,
+                    &hand,
+                    &plan,
+                    &rig.height_points,
+                    &place_episode,
+                    &place.script,
+                    place.base.physics.control_hz,
+                )?;
+                println!(
+                    "  {what:45} success {:5} dist {:5.1} mm lift clear {:6.1} mm  wristΔ {}",
+                    o.success,
+                    1e3 * o.final_distance_m,
+                    1e3 * o.clearance_after_lift_m,
+                    iso_diff(&base.grasp.wrist_pose_world, &plan.grasp.wrist_pose_world)
+                );
+                continue;
             }
             let o = run_nail(
                 &rig.scene,
