@@ -206,6 +206,7 @@ fn assert_same_registration(got: &graspd_client::Registration, expected: &serde_
     assert_eq!(got.pose.rotation_xyzw.to_vec(), q);
     assert_eq!(got.fit.confident, expected["fit"]["confident"].as_bool().unwrap());
     assert_eq!(got.fit.ambiguous_pose, expected["fit"]["ambiguous_pose"].as_bool().unwrap());
+    assert_eq!(u64::from(got.fit.stray_points), expected["fit"]["stray_points"].as_u64().unwrap());
 }
 
 #[test]

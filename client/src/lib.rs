@@ -177,6 +177,9 @@ pub struct Fit {
     pub confident: bool,
     /// Another pose explains the view almost as well: the orientation is not determined by it.
     pub ambiguous_pose: bool,
+    /// Points of the request set aside as stray before the fit (flying pixels,
+    /// speckle, segmentation leaks); they count as outside in `inlier_fraction`.
+    pub stray_points: u32,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -939,6 +942,7 @@ fn registration(r: &proto::Registration, category: &str, frame: &str) -> Registr
             inlier_threshold_m: r.inlier_threshold_m,
             confident: r.confident != 0,
             ambiguous_pose: r.ambiguous_pose != 0,
+            stray_points: r.stray_points,
         },
         keypoints: r.keypoints[..(r.keypoint_count as usize).min(proto::MAX_KEYPOINTS)]
             .iter()

@@ -405,7 +405,10 @@ pub struct Registration {
     /// 1 when another pose, at least 30° away, explains the view almost as well
     /// (a mug whose handle is hidden): the orientation is not determined by this view.
     pub ambiguous_pose: u32,
-    pub reserved: u32,
+    /// Points set aside as stray before the fit (isolated points: flying
+    /// pixels, speckle, segmentation leaks); of `points`. (Was `reserved`,
+    /// always 0: same layout, so protocol version 1 is unchanged.)
+    pub stray_points: u32,
     /// Canonical keypoints moved through the fitted deformation and pose.
     pub keypoints: [Keypoint; MAX_KEYPOINTS],
 }

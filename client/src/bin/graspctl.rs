@@ -661,6 +661,8 @@ fn registration_cli_json(r: &graspd_client::Registration) -> serde_json::Value {
             "inlier_mm": r.fit.inlier_threshold_m * 1e3,
             "confident": r.fit.confident,
             "ambiguous_pose": r.fit.ambiguous_pose,
+            "stray_fraction": if r.points > 0 { f64::from(r.fit.stray_points) / f64::from(r.points) } else { 0.0 },
+            "stray_points": r.fit.stray_points,
         },
         "keypoints": r.keypoints,
         "cloud_frame": r.cloud_frame,

@@ -350,6 +350,7 @@ pub fn registration_to_wire(reg: &crate::shape::Registration, points: usize) -> 
     r.keypoint_count = reg.keypoints.len().min(proto::MAX_KEYPOINTS) as u32;
     r.confident = reg.fit.confident as u32;
     r.ambiguous_pose = reg.fit.ambiguous_pose as u32;
+    r.stray_points = reg.fit.stray_points.min(u32::MAX as usize) as u32;
     r.points = points.min(u32::MAX as usize) as u32;
     for (slot, k) in r.keypoints.iter_mut().zip(&reg.keypoints) {
         slot.name = proto::str_to_text(&k.name);

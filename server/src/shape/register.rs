@@ -147,6 +147,8 @@ pub struct FitQuality {
     /// Fraction of the cloud set aside as stray points before the fit
     /// (isolated points: flying pixels, speckle, segmentation leaks).
     pub stray_fraction: f64,
+    /// The same as a count of the cloud's points.
+    pub stray_points: usize,
     /// RMS distance of the inliers to the completed shape, millimetres.
     pub residual_mm: f64,
     pub inlier_mm: f64,
@@ -408,6 +410,7 @@ impl Registrar {
         let stray_fraction = 1.0 - all.len() as f64 / cloud.len() as f64;
         let mut quality = self.quality(models, &fit, &fine_x, stray_fraction);
         quality.ambiguous_pose = ambiguous_pose;
+        quality.stray_points = cloud.len() - all.len();
         stage.quality = ms(t_stage);
         let keypoints = models
             .keypoints
@@ -533,6 +536,7 @@ impl Registrar {
         FitQuality {
             inlier_fraction,
             stray_fraction,
+            stray_points: 0,
             residual_mm,
             inlier_mm: inlier_m * 1e3,
             confident: inlier_fraction >= CONFIDENT_INLIER_FRACTION,
