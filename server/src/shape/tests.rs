@@ -255,3 +255,37 @@ fn registered_keypoints_are_not_pulled_toward_the_camera() {
     assert!(bias.abs() < 1.2, "registered keypoints sit {bias:+.2} mm along the view (median)");
     assert!(report.ours.keypoint_error_mm.median < 5.0, "{:?}", report.ours.keypoint_error_mm);
 }
+
+#[test]
+fn a_mug_on_its_side_registers_the_right_way_round() {
+    // Its principal axes are too alike to settle the pose, so the registrar
+    // also starts from the mug lying on its side (measured, 8 views: keypoint
+    // error p90 115 mm without those starts, its opening reversed; 9.2 mm with).
+    let reg = mug_registrar();
+    let test = tools::family(Category::Mug).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap();
+    let side = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_2);
+    let mut errs = Vec::new();
+    for (k, yaw) in [0.3f64, 1.9, 3.5, 5.1].iter().enumerate() {
+        let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), *yaw) * side;
+        let zmin = test.mesh.vertices.iter().map(|p| (rot * p).z).fold(f64::INFINITY, f64::min);
+        let pose = Isometry3::from_parts(Translation3::new(0.02, 0.04, -zmin), rot);
+        let scene = Scene::new(&test.mesh, pose, Some(0.0)).unwrap();
+        let cam_pose =
+            standard_view(k * 2, 8, pose * Point3::origin(), test.mesh.diagonal(), Intrinsics::default()).unwrap();
+        let cam = DepthCamera {
+            intrinsics: Intrinsics::default(),
+            world_from_camera: cam_pose,
+            noise: DepthNoise::default(),
+        };
+        let cloud = cam.capture(&scene, k as u64).unwrap().points_world;
+        let opts = RegisterOptions { viewpoint: Some(cam_pose.translation.vector.into()), ..Default::default() };
+        let r = reg.register(&cloud, &opts).unwrap();
+        let rot_err = (r.rotation_cloud_from_canonical * rot.inverse()).angle().to_degrees();
+        assert!(rot_err < 25.0, "view {k}: rotation error {rot_err:.1}°");
+        for (p, t) in r.keypoints.iter().zip(&test.keypoints) {
+            errs.push((Vector3::from(p.position) - (pose * Point3::from(t.position)).coords).norm() * 1e3);
+        }
+    }
+    errs.sort_by(f64::total_cmp);
+    assert!(errs[errs.len() / 2] < 8.0, "median keypoint error {:.1} mm over {errs:?}", errs[errs.len() / 2]);
+}
