@@ -437,6 +437,7 @@ mod tests {
                     inlier_threshold_m: 0.005,
                     confident: true,
                     ambiguous_pose: false,
+                    stray_points: 0,
                 },
                 keypoints: Vec::new(),
             },
