@@ -101,8 +101,8 @@ pub struct RegisterOptions {
     /// None: only for categories whose canonical's principal axes are too
     /// alike to settle the pose from a view's (the mug: a mug knocked over,
     /// test views on its side, 8 views: keypoint error median / p90 9.1 / 115
-    /// → 4.0 / 9.2 mm). It doubles the coarse stage's hypotheses (+1.2 ms a
-    /// fit), and for an elongated tool the principal axes already cover its
+    /// → 4.0 / 9.2 mm). It doubles the coarse stage's hypotheses (mug fit p50
+    /// 5.9 → 7.5 ms, `bench_register`), and for an elongated tool the principal axes already cover its
     /// sides while the extra starts let a flat hammer's view be explained on
     /// its edge (hammer train p90 7.9 → 20 mm with them).
     pub lying_hypotheses: Option<bool>,
@@ -301,7 +301,7 @@ impl Registrar {
         let mut scored: Vec<(f64, Pose, f64)> = hyps
             .iter()
             .map(|&pose| {
-                let view = View { normals: &coarse_normals, viewpoint, occlusion: None };
+                let view = View { normals: coarse_normals, viewpoint, occlusion: None };
                 let fit = em(
                     &coarse_model,
                     view,
@@ -428,10 +428,8 @@ impl Registrar {
         iterations += fit.iterations;
         stage.refine = ms(t_stage);
         let t_stage = Instant::now();
-        let stray_fraction = 1.0 - all.len() as f64 / cloud.len() as f64;
-        let mut quality = self.quality(models, &fit, &fine_x, stray_fraction);
+        let mut quality = self.quality(models, &fit, &fine_x, cloud.len() - all.len(), cloud.len());
         quality.ambiguous_pose = ambiguous_pose;
-        quality.stray_points = cloud.len() - all.len();
         stage.quality = ms(t_stage);
         let keypoints = models
             .keypoints
@@ -544,7 +542,9 @@ impl Registrar {
             .collect()
     }
 
-    fn quality(&self, models: &Models, fit: &Fit, x: &[P3], stray_fraction: f64) -> FitQuality {
+    /// `stray_points` of the cloud's `cloud_points` were set aside before the fit.
+    fn quality(&self, models: &Models, fit: &Fit, x: &[P3], stray_points: usize, cloud_points: usize) -> FitQuality {
+        let stray_fraction = 1.0 - (cloud_points - stray_points) as f64 / cloud_points as f64;
         let shape: Vec<P3> = models.surface.evaluate(&fit.latent).iter().map(|y| fit.pose.apply(y)).collect();
         let tree: ImmutableKdTree<f64, u32, 3, 32> = ImmutableKdTree::new_from_slice(&shape);
         // Sample spacing of the completed surface inflates nearest-point distances; allow for it.
@@ -563,7 +563,7 @@ impl Registrar {
         FitQuality {
             inlier_fraction,
             stray_fraction,
-            stray_points: 0,
+            stray_points,
             residual_mm,
             inlier_mm: inlier_m * 1e3,
             confident: inlier_fraction >= CONFIDENT_INLIER_FRACTION,
@@ -621,7 +621,7 @@ const HIDDEN_WEIGHT: f64 = 0.1;
 /// [`HIDDEN_WEIGHT`] because the occlusion test is then exact enough to trust:
 /// measured (8 views, seed 7, training tools), the registered keypoints'
 /// median camera-depth bias went from -1.73/-0.91/-0.89 mm (mug, hammer, drill;
-/// negative = toward the camera) at 0.1 without occlusion to -0.92/-0.14/-0.34
+/// negative = toward the camera) at 0.1 without occlusion to -0.88/-0.13/-0.33
 /// mm at 0.05; 0.0 overshoots (+1 mm) and 0.02 was worse on test instances.
 const HIDDEN_WEIGHT_FINE: f64 = 0.05;
 /// Least depth (m) by which a seen surface must lie in front of a model point to hide it.

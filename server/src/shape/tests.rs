@@ -30,12 +30,23 @@ fn view_of(mesh: &crate::geometry::TriMesh, yaw: f64, view: usize) -> (Vec<Point
         Translation3::new(0.05, -0.03, 0.0),
         UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
     );
-    let scene = Scene::new(mesh, pose, Some(0.0)).unwrap();
-    let centre = pose * Point3::new(0.0, 0.0, 0.05);
+    (capture(mesh, &pose, pose * Point3::new(0.0, 0.0, 0.05), view, 3).0, pose)
+}
+
+/// A noisy view (`view` of 8 around `centre`) of `mesh` at `pose` on a table,
+/// and the camera's pose.
+fn capture(
+    mesh: &crate::geometry::TriMesh,
+    pose: &Isometry3<f64>,
+    centre: Point3<f64>,
+    view: usize,
+    seed: u64,
+) -> (Vec<Point3<f64>>, Isometry3<f64>) {
+    let scene = Scene::new(mesh, *pose, Some(0.0)).unwrap();
     let cam_pose = standard_view(view, 8, centre, mesh.diagonal(), Intrinsics::default()).unwrap();
     let cam =
         DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: cam_pose, noise: DepthNoise::default() };
-    (cam.capture(&scene, 3).unwrap().points_world, pose)
+    (cam.capture(&scene, seed).unwrap().points_world, cam_pose)
 }
 
 #[test]
@@ -269,15 +280,7 @@ fn a_mug_on_its_side_registers_the_right_way_round() {
         let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), *yaw) * side;
         let zmin = test.mesh.vertices.iter().map(|p| (rot * p).z).fold(f64::INFINITY, f64::min);
         let pose = Isometry3::from_parts(Translation3::new(0.02, 0.04, -zmin), rot);
-        let scene = Scene::new(&test.mesh, pose, Some(0.0)).unwrap();
-        let cam_pose =
-            standard_view(k * 2, 8, pose * Point3::origin(), test.mesh.diagonal(), Intrinsics::default()).unwrap();
-        let cam = DepthCamera {
-            intrinsics: Intrinsics::default(),
-            world_from_camera: cam_pose,
-            noise: DepthNoise::default(),
-        };
-        let cloud = cam.capture(&scene, k as u64).unwrap().points_world;
+        let (cloud, cam_pose) = capture(&test.mesh, &pose, pose * Point3::origin(), k * 2, k as u64);
         let opts = RegisterOptions { viewpoint: Some(cam_pose.translation.vector.into()), ..Default::default() };
         let r = reg.register(&cloud, &opts).unwrap();
         let rot_err = (r.rotation_cloud_from_canonical * rot.inverse()).angle().to_degrees();
