@@ -16,7 +16,7 @@
 //! the mean shape; the best survive to the full latent fit.
 
 use super::cpd::{weighted_similarity, Normalization};
-use super::estep::{dist2, initial_sigma2, EStep, Posteriors, P3};
+use super::estep::{dist2, dot, initial_sigma2, EStep, Posteriors, P3};
 use super::freespace::FreeSpace;
 use super::space::{LinearModel, NamedPoint, ShapeSpace};
 use faer::prelude::*;
@@ -209,6 +209,8 @@ struct Models {
     /// Middle resolution, for the race between the surviving hypotheses.
     race: LinearModel,
     fine: LinearModel,
+    /// The fine model's latent normal equations, precomputed.
+    fine_latent: LatentStep,
     surface: LinearModel,
     keypoints: LinearModel,
 }
@@ -230,13 +232,15 @@ impl Models {
         let race_idx = farthest_points(&canonical, 200);
         let coarse_idx = farthest_points(&canonical, 120);
         let normals = |idx: &[usize]| idx.iter().map(|&i| space.surface_normals[i]).collect();
+        let fine = surface.select(&fine_idx);
         Self {
+            fine_latent: LatentStep::new(&fine),
             coarse_normals: normals(&coarse_idx),
             race_normals: normals(&race_idx),
             fine_normals: normals(&fine_idx),
             coarse: surface.select(&coarse_idx),
             race: surface.select(&race_idx),
-            fine: surface.select(&fine_idx),
+            fine,
             surface,
             keypoints: model(&kp),
         }
@@ -419,7 +423,7 @@ impl Registrar {
             &fine_x,
             lead.pose,
             lead.latent.clone(),
-            prior,
+            prior.map(|var| (var, &models.fine_latent)),
             Some(lead.sigma2),
             opts,
             opts.fine_iters,
@@ -685,6 +689,9 @@ impl YawSweep<'_> {
         let pivot = Vector3::from(lead.pose.apply(&[origin.x, origin.y, origin.z]));
         let axis = nalgebra::Unit::new_normalize(up);
         let mut estep = new_estep(self.x);
+        // Dense sums only: every turn moves the model too far for a neighbour
+        // list to be reused (measured: mug fit p50 −0.2 ms).
+        estep.truncate_below = 0.0;
         let mut post = Posteriors::default();
         let view = View { normals: self.normals, viewpoint: self.viewpoint, occlusion: None };
         let mut weights = Vec::new();
@@ -704,11 +711,12 @@ impl YawSweep<'_> {
                     y_world.iter_mut().zip(&y_model).for_each(|(w, y)| *w = pose.apply(y));
                 }
                 let w = view.weights(&pose, &y_world, lead.sigma2, &mut weights);
-                estep.run_weighted(&y_world, w, lead.sigma2, opts.outlier_weight, &mut post);
+                // Scored by the likelihood alone (the posterior sums are not needed).
+                let nll = estep.neg_log_likelihood(&y_world, w, lead.sigma2, opts.outlier_weight);
                 let violation = self.free_space.map_or(0.0, |fs| {
                     fs.violation_fraction(&y_world, self.normals.iter().map(|n| pose.r * Vector3::from(*n)))
                 });
-                post.neg_log_likelihood / self.x.len().max(1) as f64 + FREE_SPACE_PENALTY * violation
+                nll / self.x.len().max(1) as f64 + FREE_SPACE_PENALTY * violation
             })
             .collect();
         let best = (0..k).min_by(|&a, &b| scores[a].total_cmp(&scores[b])).unwrap_or(0);
@@ -766,6 +774,87 @@ fn new_estep(x: &[P3]) -> EStep {
     estep
 }
 
+/// The latent half of the M-step for one model. The normal equations are
+/// A ℓ = b with A = Σᵢ P1ᵢ BᵢᵀBᵢ + σ²/s² Λ⁻¹ and b = Σᵢ Bᵢᵀ rᵢ (Bᵢ the 3×q
+/// basis rows of point i, rᵢ its posterior-weighted residual in the model
+/// frame). The model is fixed during a fit, so the per-point products BᵢᵀBᵢ
+/// are computed once and A is q(q+1)/2 contiguous dot products of length M
+/// with P1 (measured: drill fine stage 1.50 → 1.42 ms p50).
+struct LatentStep {
+    q: usize,
+    /// (BᵢᵀBᵢ)_jk for j ≤ k, one column over the points per pair (row-major pairs).
+    gram: Vec<Vec<f64>>,
+    /// basis[j] as three columns over the points.
+    basis: Vec<[Vec<f64>; 3]>,
+    base: [Vec<f64>; 3],
+}
+
+impl LatentStep {
+    fn new(model: &LinearModel) -> Self {
+        let q = model.basis.len();
+        let column = |v: &[P3], d: usize| v.iter().map(|p| p[d]).collect::<Vec<f64>>();
+        let mut gram = Vec::with_capacity(q * (q + 1) / 2);
+        for j in 0..q {
+            for k in j..q {
+                gram.push(model.basis[j].iter().zip(&model.basis[k]).map(|(a, b)| dot(a, b)).collect());
+            }
+        }
+        Self {
+            q,
+            gram,
+            basis: model.basis.iter().map(|b| [0, 1, 2].map(|d| column(b, d))).collect(),
+            base: [0, 1, 2].map(|d| column(&model.base, d)),
+        }
+    }
+
+    /// The MAP latent for these posteriors and pose; `reg` = prior weight·σ²/s².
+    fn solve(&self, post: &Posteriors, pose: &Pose, reg: f64, var: &[f64]) -> Option<Vec<f64>> {
+        let q = self.q;
+        let rt = pose.r.transpose();
+        // rᵢ = Rᵀ(PXᵢ − P1ᵢ t)/s − P1ᵢ baseᵢ, as three columns.
+        let m = post.p1.len();
+        let mut r: [Vec<f64>; 3] = Default::default();
+        for c in r.iter_mut() {
+            c.reserve(m);
+        }
+        for (i, (&p1, px)) in post.p1.iter().zip(&post.px).enumerate() {
+            let v = rt * (Vector3::from(*px) - pose.t * p1) / pose.s;
+            for d in 0..3 {
+                r[d].push(v[d] - self.base[d][i] * p1);
+            }
+        }
+        let mut a = Mat::<f64>::zeros(q, q);
+        let mut b = Mat::<f64>::zeros(q, 1);
+        let mut e = 0;
+        for j in 0..q {
+            b[(j, 0)] = (0..3).map(|d| dot_slices(&self.basis[j][d], &r[d])).sum();
+            for k in j..q {
+                let v = dot_slices(&self.gram[e], &post.p1);
+                a[(j, k)] = v;
+                a[(k, j)] = v;
+                e += 1;
+            }
+            a[(j, j)] += reg / var[j];
+        }
+        let llt = a.llt(Side::Lower).ok()?;
+        let sol = llt.solve(&b);
+        Some((0..q).map(|j| sol[(j, 0)]).collect())
+    }
+}
+
+/// Σ aᵢbᵢ with four partial sums, so the loop vectorises.
+fn dot_slices(a: &[f64], b: &[f64]) -> f64 {
+    let mut part = [0.0; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let tail: f64 = ca.remainder().iter().zip(cb.remainder()).map(|(x, y)| x * y).sum();
+    for (x, y) in ca.zip(cb) {
+        for l in 0..4 {
+            part[l] += x[l] * y[l];
+        }
+    }
+    part.iter().sum::<f64>() + tail
+}
+
 /// EM over pose (and latent, when `prior` is given).
 #[allow(clippy::too_many_arguments)]
 fn em(
@@ -774,7 +863,7 @@ fn em(
     x: &[P3],
     mut pose: Pose,
     mut latent: Vec<f64>,
-    prior: Option<&[f64]>,
+    prior: Option<(&[f64], &LatentStep)>,
     sigma2_init: Option<f64>,
     opts: &RegisterOptions,
     iters: usize,
@@ -812,40 +901,13 @@ fn em(
         // Translation re-derived for a clamped scale: t = μx − s R μy.
         pose.t = fitted_translation(x, &y_model, &post, &pose);
         // Latent (MAP): (Σ P1 BᵀB + σ²/s² Λ⁻¹) ℓ = Σ Bᵀ(PX̃ − P1 ȳ).
-        if let Some(var) = prior {
+        if let Some((var, step)) = prior {
             if q > 0 {
-                let rt = pose.r.transpose();
-                let mut a = Mat::<f64>::zeros(q, q);
-                let mut b = Mat::<f64>::zeros(q, 1);
-                for i in 0..model.len() {
-                    let p1 = post.p1[i];
-                    if p1 < 1e-12 {
-                        continue;
-                    }
-                    let pxt = rt * (Vector3::from(post.px[i]) - pose.t * p1) / pose.s;
-                    let r = pxt - Vector3::from(model.base[i]) * p1;
-                    for j in 0..q {
-                        let bj = Vector3::from(model.basis[j][i]);
-                        b[(j, 0)] += bj.dot(&r);
-                        for k in j..q {
-                            a[(j, k)] += p1 * bj.dot(&Vector3::from(model.basis[k][i]));
-                        }
-                    }
-                }
                 let reg = sigma2 / (pose.s * pose.s) * opts.latent_prior_weight;
-                for j in 0..q {
-                    for k in 0..j {
-                        a[(j, k)] = a[(k, j)];
-                    }
-                    a[(j, j)] += reg / var[j];
+                if let Some(sol) = step.solve(&post, &pose, reg, var) {
+                    latent.copy_from_slice(&sol);
+                    model.evaluate_into(&latent, &mut y_model);
                 }
-                if let Ok(llt) = a.llt(Side::Lower) {
-                    let sol = llt.solve(&b);
-                    for j in 0..q {
-                        latent[j] = sol[(j, 0)];
-                    }
-                }
-                model.evaluate_into(&latent, &mut y_model);
             }
         }
         for (w, y) in y_world.iter_mut().zip(&y_model) {
