@@ -17,6 +17,9 @@ pub struct RadiusGrid {
     /// Start of each cell's items in `items` (length cells + 1).
     starts: Vec<u32>,
     items: Vec<u32>,
+    /// The points' coordinates in `items` order (three columns): a query
+    /// scans them contiguously instead of through the indices.
+    sorted: [Vec<f64>; 3],
     /// Cell keys of the points, reused between builds.
     keys: Vec<u32>,
 }
@@ -66,6 +69,10 @@ impl RadiusGrid {
             self.items[fill[k as usize] as usize] = i as u32;
             fill[k as usize] += 1;
         }
+        for (d, col) in self.sorted.iter_mut().enumerate() {
+            col.clear();
+            col.extend(self.items.iter().map(|&i| x[i as usize][d]));
+        }
     }
 
     fn cell_of(&self, p: &P3) -> [usize; 3] {
@@ -77,10 +84,10 @@ impl RadiusGrid {
         c
     }
 
-    /// Calls `f(index, squared distance)` for every point of `x` (the set the
-    /// grid was built on) within √`r2` of `q`; `r2` must not exceed the build radius².
+    /// Calls `f(start, end)` for the runs of `items` (and `sorted`) that
+    /// hold the points of the 27 cells around `q`: one run per row of three cells.
     #[inline]
-    pub fn for_each_within(&self, x: &[P3], q: &P3, r2: f64, mut f: impl FnMut(u32, f64)) {
+    fn runs_around(&self, q: &P3, mut f: impl FnMut(usize, usize)) {
         let mut lo = [0usize; 3];
         let mut hi = [0usize; 3];
         for d in 0..3 {
@@ -95,17 +102,29 @@ impl RadiusGrid {
         for z in lo[2]..=hi[2] {
             for y in lo[1]..=hi[1] {
                 let row = self.dims[0] * (y + self.dims[1] * z);
-                let (s, e) = (self.starts[row + lo[0]] as usize, self.starts[row + hi[0] + 1] as usize);
-                for &i in &self.items[s..e] {
-                    let p = &x[i as usize];
-                    let (dx, dy, dz) = (p[0] - q[0], p[1] - q[1], p[2] - q[2]);
-                    let d2 = dx * dx + dy * dy + dz * dz;
-                    if d2 <= r2 {
-                        f(i, d2);
-                    }
-                }
+                f(self.starts[row + lo[0]] as usize, self.starts[row + hi[0] + 1] as usize);
             }
         }
+    }
+
+    /// Appends to `out` the index of every point (of the set the grid was
+    /// built on) within √`r2` of `q`; `r2` must not exceed the build radius².
+    /// Branch-free: each candidate is written and kept only if near, since
+    /// about half the candidates of a surface are, and mispredicted branches
+    /// were most of the neighbour lists' build time.
+    #[inline]
+    pub fn collect_within(&self, q: &P3, r2: f64, out: &mut Vec<u32>) {
+        let [sx, sy, sz] = &self.sorted;
+        self.runs_around(q, |s, e| {
+            let mut len = out.len();
+            out.resize(len + (e - s), 0);
+            for p in s..e {
+                let (dx, dy, dz) = (sx[p] - q[0], sy[p] - q[1], sz[p] - q[2]);
+                out[len] = self.items[p];
+                len += (dx * dx + dy * dy + dz * dz <= r2) as usize;
+            }
+            out.truncate(len);
+        });
     }
 }
 
@@ -125,7 +144,7 @@ mod tests {
                 let q: P3 =
                     [r.random::<f64>() * 1.4 - 0.2, r.random::<f64>() * 0.7 - 0.1, r.random::<f64>() * 0.3 - 0.1];
                 let mut got = Vec::new();
-                g.for_each_within(&x, &q, radius * radius, |i, _| got.push(i));
+                g.collect_within(&q, radius * radius, &mut got);
                 got.sort_unstable();
                 let want: Vec<u32> = (0..x.len() as u32)
                     .filter(|&i| super::super::estep::dist2(&x[i as usize], &q) <= radius * radius)
