@@ -60,6 +60,8 @@ pub struct EStep {
     list: NeighbourList,
     /// Statistics computed and thrown away by `neg_log_likelihood`.
     scratch: Posteriors,
+    /// Off: the portable loops even where AVX2 is there (tests hold both to the textbook).
+    allow_avx2: bool,
 }
 
 impl EStep {
@@ -83,6 +85,7 @@ impl EStep {
             den: Vec::new(),
             list: NeighbourList::default(),
             scratch: Posteriors::default(),
+            allow_avx2: true,
         }
     }
 
@@ -145,7 +148,7 @@ impl EStep {
         out.neg_log_likelihood = 0.0;
         let k = (-0.5 / sigma2) as f32;
         #[cfg(target_arch = "x86_64")]
-        let done = if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+        let done = if avx2(self.allow_avx2) {
             // SAFETY: the CPU supports the features the function is compiled for.
             unsafe { dense_rows_f32_avx2::<false>(b, m, k, c, out) };
             true
@@ -168,7 +171,7 @@ impl EStep {
             b.load(&self.x, y, weights);
             #[cfg(target_arch = "x86_64")]
             {
-                if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                if avx2(self.allow_avx2) {
                     // SAFETY: the CPU supports the features the function is compiled for.
                     unsafe { dense_rows_f32_avx2::<true>(b, m, k as f32, c, out) };
                     return;
@@ -190,7 +193,7 @@ impl EStep {
         let (ys, row, x, acc, pi) = (&self.ys, &mut self.row, &self.x, &mut self.acc, &self.pi);
         #[cfg(target_arch = "x86_64")]
         {
-            if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+            if avx2(self.allow_avx2) {
                 // SAFETY: the CPU supports the features the function is compiled for.
                 unsafe { dense_rows_avx2(x, ys, pi, row, acc, m, k, c, out) };
                 return;
@@ -224,7 +227,7 @@ impl EStep {
             b.load(&self.x, y, weights);
             #[cfg(target_arch = "x86_64")]
             {
-                if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                if avx2(self.allow_avx2) {
                     if self.list.padded_for != self.list.y_built.len() {
                         self.list.pad(b);
                     }
@@ -282,6 +285,12 @@ impl EStep {
             out.px[i] = px;
         }
     }
+}
+
+/// Whether to take the AVX2 + FMA kernels: allowed and the CPU has them.
+#[cfg(target_arch = "x86_64")]
+fn avx2(allowed: bool) -> bool {
+    allowed && std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
 }
 
 /// Extra radius of a neighbour list beyond the cutoff, as a fraction of it:
@@ -941,6 +950,26 @@ mod tests {
         let mut out = Posteriors::default();
         e.run(&y, 0.05, 0.1, &mut out);
         assert_close(&out, &reference(&x, &y, 0.05, 0.1), 1e-4);
+    }
+
+    #[test]
+    fn both_single_precision_kernels_match_the_textbook_e_step() {
+        // 203 moving points: not a whole number of vectors.
+        let (x, y) = (cloud(300, 5), cloud(203, 6));
+        for avx2 in [false, true] {
+            // Dense (large σ) and truncated (small σ) regimes.
+            for (s2, truncated) in [(0.05, false), (4e-4, true)] {
+                let mut e = EStep::new(&x);
+                e.single_precision = true;
+                e.allow_avx2 = avx2;
+                let mut out = Posteriors::default();
+                e.run(&y, s2, 0.1, &mut out);
+                assert_eq!(!e.list.data.is_empty(), truncated, "σ² {s2}");
+                assert_close(&out, &reference(&x, &y, s2, 0.1), 1e-4);
+                let nll = e.neg_log_likelihood(&y, None, s2, 0.1);
+                assert!((nll - out.neg_log_likelihood).abs() < 1e-6 * nll.abs().max(1.0), "avx2 {avx2}, σ² {s2}");
+            }
+        }
     }
 
     #[test]
