@@ -364,7 +364,7 @@ impl NeighbourList {
                     pp.x[d].push(b.xs[d][j as usize]);
                 }
             }
-            while pp.data.len() % LANES != 0 {
+            while !pp.data.len().is_multiple_of(LANES) {
                 pp.data.push(n as u32);
                 for c in pp.x.iter_mut() {
                     c.push(FAR_AWAY);
@@ -690,7 +690,7 @@ unsafe fn padded_pairs_f32_avx2(b: &mut F32Buffers, pp: &PaddedPairs, k: f32, c:
     let m = pp.starts.len() - 1;
     let n = xs[0].len();
     let total = pp.data.len();
-    assert!(total % LANES == 0 && pp.x.iter().all(|v| v.len() == total) && ys[0].len() >= m && pi.len() >= m);
+    assert!(total.is_multiple_of(LANES) && pp.x.iter().all(|v| v.len() == total) && ys[0].len() >= m && pi.len() >= m);
     e.clear();
     e.resize(total, 0.0);
     let (x0, x1, x2) = (pp.x[0].as_ptr(), pp.x[1].as_ptr(), pp.x[2].as_ptr());
@@ -768,7 +768,7 @@ unsafe fn dense_rows_f32_avx2<const STATS: bool>(b: &mut F32Buffers, m: usize, k
     use std::arch::x86_64::*;
     let F32Buffers { x, ys, pi, row, acc, .. } = b;
     let m8 = pi.len();
-    assert!(m8 % LANES == 0 && ys.iter().all(|v| v.len() == m8) && m <= m8);
+    assert!(m8.is_multiple_of(LANES) && ys.iter().all(|v| v.len() == m8) && m <= m8);
     row.resize(m8, 0.0);
     for a in acc.iter_mut() {
         a.clear();
