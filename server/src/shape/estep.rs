@@ -116,9 +116,8 @@ impl EStep {
             return;
         }
         let c = outlier_constant(sigma2, w, m, n);
-        let cutoff = self.cutoff_sigmas * sigma2.sqrt();
-        // Truncate when the cutoff ball holds a small share of the data volume.
-        if n >= 64 && cutoff < self.truncate_below * self.x_radius {
+        if self.truncates(sigma2) {
+            let cutoff = self.cutoff_sigmas * sigma2.sqrt();
             self.run_truncated(y, weights, sigma2, c, cutoff * cutoff, out);
         } else {
             self.run_dense(y, weights, sigma2, c, out);
@@ -132,54 +131,56 @@ impl EStep {
     /// single-precision regime it skips the posterior sums, a sixth of the work.
     pub fn neg_log_likelihood(&mut self, y: &[P3], weights: Option<&[f64]>, sigma2: f64, w: f64) -> f64 {
         let (m, n) = (y.len(), self.x.len());
-        let c = outlier_constant(sigma2, w, m, n);
-        let cutoff = self.cutoff_sigmas * sigma2.sqrt();
-        let dense = !(n >= 64 && cutoff < self.truncate_below * self.x_radius);
-        if m == 0 || n == 0 || !dense || !self.single_precision {
-            let mut post = std::mem::take(&mut self.scratch);
+        let mut post = std::mem::take(&mut self.scratch);
+        if m == 0 || n == 0 || self.truncates(sigma2) || !self.single_precision {
             self.run_weighted(y, weights, sigma2, w, &mut post);
-            let nll = post.neg_log_likelihood;
-            self.scratch = post;
-            return nll;
+        } else {
+            post.neg_log_likelihood = n as f64 * 1.5 * sigma2.ln();
+            let c = outlier_constant(sigma2, w, m, n);
+            self.dense_f32::<false>(y, weights, sigma2, c, &mut post);
         }
+        let nll = post.neg_log_likelihood;
+        self.scratch = post;
+        nll
+    }
+
+    /// Whether an E-step at `sigma2` takes the neighbour list: when the
+    /// cutoff ball holds a small share of the data volume.
+    fn truncates(&self, sigma2: f64) -> bool {
+        self.x.len() >= 64 && self.cutoff_sigmas * sigma2.sqrt() < self.truncate_below * self.x_radius
+    }
+
+    /// The dense sums in single precision (with the posterior sums when
+    /// `STATS`), in the AVX2 kernel where the CPU has it.
+    fn dense_f32<const STATS: bool>(
+        &mut self,
+        y: &[P3],
+        weights: Option<&[f64]>,
+        sigma2: f64,
+        c: f64,
+        out: &mut Posteriors,
+    ) {
+        let (m, k) = (y.len(), (-0.5 / sigma2) as f32);
         let b = &mut self.f32buf;
         b.load(&self.x, y, weights);
-        let out = &mut self.scratch;
-        out.neg_log_likelihood = 0.0;
-        let k = (-0.5 / sigma2) as f32;
         #[cfg(target_arch = "x86_64")]
-        let done = if avx2(self.allow_avx2) {
-            // SAFETY: the CPU supports the features the function is compiled for.
-            unsafe { dense_rows_f32_avx2::<false>(b, m, k, c, out) };
-            true
-        } else {
-            false
-        };
-        #[cfg(not(target_arch = "x86_64"))]
-        let done = false;
-        if !done {
-            dense_rows_f32::<false, false>(b, m, k, c, out);
+        {
+            if avx2(self.allow_avx2) {
+                // SAFETY: the CPU supports the features the function is compiled for.
+                unsafe { dense_rows_f32_avx2::<STATS>(b, m, k, c, out) };
+                return;
+            }
         }
-        out.neg_log_likelihood + n as f64 * 1.5 * sigma2.ln()
+        dense_rows_f32::<false, STATS>(b, m, k, c, out);
     }
 
     fn run_dense(&mut self, y: &[P3], weights: Option<&[f64]>, sigma2: f64, c: f64, out: &mut Posteriors) {
-        let m = y.len();
-        let k = -0.5 / sigma2;
         if self.single_precision {
-            let b = &mut self.f32buf;
-            b.load(&self.x, y, weights);
-            #[cfg(target_arch = "x86_64")]
-            {
-                if avx2(self.allow_avx2) {
-                    // SAFETY: the CPU supports the features the function is compiled for.
-                    unsafe { dense_rows_f32_avx2::<true>(b, m, k as f32, c, out) };
-                    return;
-                }
-            }
-            dense_rows_f32::<false, true>(b, m, k as f32, c, out);
+            self.dense_f32::<true>(y, weights, sigma2, c, out);
             return;
         }
+        let m = y.len();
+        let k = -0.5 / sigma2;
         self.pi.clear();
         match weights {
             Some(wt) => self.pi.extend_from_slice(&wt[..m]),
@@ -228,7 +229,7 @@ impl EStep {
             #[cfg(target_arch = "x86_64")]
             {
                 if avx2(self.allow_avx2) {
-                    if self.list.padded_for != self.list.y_built.len() {
+                    if !self.list.padded_current {
                         self.list.pad(b);
                     }
                     // SAFETY: the CPU supports the features the function is compiled for.
@@ -310,10 +311,10 @@ struct NeighbourList {
     /// The moving points when the list was built, and its radius.
     y_built: Vec<P3>,
     radius: f64,
-    /// The same pairs laid out for the vector kernel, and the number of
-    /// moving points it was laid out for (usize::MAX: not since the last build).
+    /// The same pairs laid out for the vector kernel, and whether that
+    /// layout is of the current list (it is made on first use after a build).
     padded: PaddedPairs,
-    padded_for: usize,
+    padded_current: bool,
 }
 
 impl NeighbourList {
@@ -344,7 +345,7 @@ impl NeighbourList {
         self.y_built.clear();
         self.y_built.extend_from_slice(y);
         self.radius = radius;
-        self.padded_for = usize::MAX;
+        self.padded_current = false;
     }
 
     /// Lays the pairs out as `PaddedPairs`, with the data of `b`.
@@ -372,7 +373,7 @@ impl NeighbourList {
             }
             pp.starts.push(pp.data.len() as u32);
         }
-        self.padded_for = self.y_built.len();
+        self.padded_current = true;
     }
 }
 
@@ -537,14 +538,7 @@ fn listed_pairs_f32<const FMA: bool>(
             den[j as usize] += *v;
         }
     }
-    let mut log_den = LogSum::default();
-    for (j, d) in den.iter_mut().enumerate() {
-        let sum = *d as f64;
-        let total = sum + c;
-        out.pt1[j] = sum / total;
-        log_den.add(total);
-        *d = (1.0 / total) as f32;
-    }
+    let log_den = invert_row_totals(den, c, &mut out.pt1);
     let inv = &acc[0][..n];
     for i in 0..m {
         let range = starts[i] as usize..starts[i + 1] as usize;
@@ -599,14 +593,11 @@ fn dense_rows_f32<const FMA: bool, const STATS: bool>(
                 part[l] += ch[l];
             }
         }
-        let sum = part.iter().map(|&v| v as f64).sum::<f64>();
-        let den = sum + c;
-        log_den.add(den);
+        let (pt1, inv) = close_row(&part, c, &mut log_den);
         if !STATS {
             continue;
         }
-        let inv = 1.0 / den;
-        out.pt1[j] = sum * inv;
+        out.pt1[j] = pt1;
         let inv32 = inv as f32;
         let (w0, w1, w2) = (xn[0] * inv32, xn[1] * inv32, xn[2] * inv32);
         for ((((r, a), bb), cc), d) in
@@ -625,6 +616,34 @@ fn dense_rows_f32<const FMA: bool, const STATS: bool>(
         }
     }
     out.neg_log_likelihood -= log_den.total();
+}
+
+/// Closes one data point's row of the dense f32 sums from its per-lane
+/// partial totals: the row total plus the outlier term `c` goes into the
+/// likelihood; returns the point's Pᵀ1 entry and the inverse of that total.
+#[inline(always)]
+fn close_row(part: &[f32; LANES], c: f64, log_den: &mut LogSum) -> (f64, f64) {
+    let sum = part.iter().map(|&v| v as f64).sum::<f64>();
+    let den = sum + c;
+    log_den.add(den);
+    let inv = 1.0 / den;
+    (sum * inv, inv)
+}
+
+/// The neighbour-list sums' row totals (per data point, in `den`) turned
+/// into their inverses with the outlier term `c`, their shares into `pt1`;
+/// returns the log-sum of the totals for the likelihood.
+#[inline(always)]
+fn invert_row_totals(den: &mut [f32], c: f64, pt1: &mut [f64]) -> LogSum {
+    let mut log_den = LogSum::default();
+    for (d, share) in den.iter_mut().zip(pt1.iter_mut()) {
+        let sum = *d as f64;
+        let total = sum + c;
+        *share = sum / total;
+        log_den.add(total);
+        *d = (1.0 / total) as f32;
+    }
+    log_den
 }
 
 /// Σ ln dᵢ over the row totals of an E-step, with one logarithm per eight
@@ -717,14 +736,7 @@ unsafe fn padded_pairs_f32_avx2(b: &mut F32Buffers, pp: &PaddedPairs, k: f32, c:
     for (v, &j) in e.iter().zip(&pp.data) {
         den[j as usize] += *v;
     }
-    let mut log_den = LogSum::default();
-    for (j, d) in den[..n].iter_mut().enumerate() {
-        let sum = *d as f64;
-        let total = sum + c;
-        out.pt1[j] = sum / total;
-        log_den.add(total);
-        *d = (1.0 / total) as f32;
-    }
+    let log_den = invert_row_totals(&mut den[..n], c, &mut out.pt1);
     den[n] = 0.0;
     let (inv, idx) = (den.as_ptr(), pp.data.as_ptr());
     for i in 0..m {
@@ -795,14 +807,11 @@ unsafe fn dense_rows_f32_avx2<const STATS: bool>(b: &mut F32Buffers, m: usize, k
         }
         let mut lanes = [0.0f32; LANES];
         _mm256_storeu_ps(lanes.as_mut_ptr(), part);
-        let sum = lanes.iter().map(|&v| v as f64).sum::<f64>();
-        let den = sum + c;
-        log_den.add(den);
+        let (pt1, inv) = close_row(&lanes, c, &mut log_den);
         if !STATS {
             continue;
         }
-        let inv = 1.0 / den;
-        out.pt1[j] = sum * inv;
+        out.pt1[j] = pt1;
         let inv32 = inv as f32;
         let (wi, w0, w1, w2) = (
             _mm256_set1_ps(inv32),
