@@ -146,8 +146,17 @@ pub fn evaluate(
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed);
     for inst in instances {
         let truth_surface = sample_points(&inst.mesh, 4000, 99).map(|p| cpd::to_p3(&p)).unwrap_or_default();
+        // The grasp targets on this instance (canonical frame), where its true latent is known.
+        let space = &registrar.space;
+        let true_targets: Option<Vec<P3>> = space
+            .instances
+            .iter()
+            .position(|n| *n == inst.name)
+            .filter(|_| !grasp_targets.is_empty())
+            .map(|k| space.deform_anchored(grasp_targets, &space.train_latents[k]));
+        let targets = true_targets.as_deref().map(|truth| (grasp_targets, truth));
         for view in 0..opts.views {
-            match trial(registrar, inst, &truth_surface, grasp_targets, view, opts, &mut rng) {
+            match trial(registrar, inst, &truth_surface, targets, view, opts, &mut rng) {
                 Some(t) => trials.push(t),
                 None => skipped_views += 1,
             }
@@ -187,7 +196,8 @@ fn trial(
     registrar: &Registrar,
     inst: &Instance,
     truth_surface: &[P3],
-    grasp_targets: &[P3],
+    // The demonstration's grasp targets and the same on this instance (canonical frame).
+    grasp_targets: Option<(&[P3], &[P3])>,
     view: usize,
     opts: &TransferEvalOptions,
     rng: &mut rand_chacha::ChaCha8Rng,
@@ -213,13 +223,6 @@ fn trial(
     };
     let truth_kp: Vec<P3> = inst.keypoints.iter().map(|k| pose_pt(&k.position)).collect();
     let truth_world: Vec<P3> = truth_surface.iter().map(pose_pt).collect();
-    let space = &registrar.space;
-    let truth_targets: Option<Vec<P3>> = space
-        .instances
-        .iter()
-        .position(|n| *n == inst.name)
-        .filter(|_| !grasp_targets.is_empty())
-        .map(|k| space.deform_anchored(grasp_targets, &space.train_latents[k]).iter().map(pose_pt).collect());
 
     let scene = Scene::new(&mesh, world_from_tool, Some(0.0)).ok()?;
     let centre = world_from_tool * Point3::from(mesh.aabb().map(|(lo, hi)| (lo.coords + hi.coords) / 2.0)?);
@@ -293,11 +296,11 @@ fn trial(
             ours_kp.iter().zip(&truth_kp).map(|(a, b)| (Vector3::from(*a) - Vector3::from(*b)).dot(&view_axis)).sum();
         1e3 * sum / n
     };
-    let targets = match &truth_targets {
-        Some(truth) => [
-            err(&registrar.transfer(&reg, grasp_targets), truth),
-            err(&registrar.transfer(&canon, grasp_targets), truth),
-        ],
+    let targets = match grasp_targets {
+        Some((demo, truth)) => {
+            let truth: Vec<P3> = truth.iter().map(pose_pt).collect();
+            [err(&registrar.transfer(&reg, demo), &truth), err(&registrar.transfer(&canon, demo), &truth)]
+        }
         None => [Vec::new(), Vec::new()],
     };
     Some(Trial {
