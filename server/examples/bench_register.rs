@@ -50,7 +50,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for &known_viewpoint in modes {
         let mut total = Vec::new();
         let mut iterations = 0usize;
-        let mut stages = [Vec::new(), Vec::new(), Vec::new(), Vec::new()];
+        let mut stages = [Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new()];
         for _ in 0..repeats {
             for (cloud, vp) in &views {
                 let opts = RegisterOptions { viewpoint: known_viewpoint.then_some(*vp), ..base };
@@ -59,7 +59,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 total.push(t0.elapsed().as_secs_f64() * 1e3);
                 iterations += r.iterations;
                 let s = r.stage_ms;
-                for (v, x) in stages.iter_mut().zip([s.coarse, s.race, s.refine, s.quality]) {
+                for (v, x) in stages.iter_mut().zip([s.coarse, s.race, s.refine, s.polish, s.quality]) {
                     v.push(x);
                 }
             }
@@ -69,7 +69,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             v[((v.len() - 1) as f64 * q).round() as usize]
         };
         println!(
-            "{} viewpoint {}: {} fits, total p50 {:.2} ms p99 {:.2} ms; stage p50 coarse {:.2} race {:.2} refine {:.2} quality {:.2} ms; {:.1} EM iterations a fit",
+            "{} viewpoint {}: {} fits, total p50 {:.2} ms p99 {:.2} ms; stage p50 coarse {:.2} race {:.2} refine {:.2} polish {:.2} quality {:.2} ms; {:.1} EM iterations a fit",
             category.name(),
             if known_viewpoint { "known  " } else { "unknown" },
             total.len(),
@@ -79,6 +79,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             pct(&mut stages[1], 0.5),
             pct(&mut stages[2], 0.5),
             pct(&mut stages[3], 0.5),
+            pct(&mut stages[4], 0.5),
             iterations as f64 / (repeats * views.len()) as f64,
         );
     }
