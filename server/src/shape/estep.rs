@@ -223,7 +223,7 @@ impl EStep {
                     self.grid.build(&self.x, radius);
                     self.grid_radius = radius;
                 }
-                self.list.build(&self.grid, y, radius);
+                self.list.build(&self.grid, y, radius, self.allow_avx2);
             }
         }
         let k = -0.5 / sigma2;
@@ -378,15 +378,11 @@ impl NeighbourList {
         self.padded_current = false;
     }
 
-    fn build(&mut self, grid: &RadiusGrid, y: &[P3], radius: f64) {
+    fn build(&mut self, grid: &RadiusGrid, y: &[P3], radius: f64, allow_avx2: bool) {
         self.starts.clear();
         self.data.clear();
         self.starts.push(0);
-        let r2 = radius * radius;
-        for yi in y {
-            grid.collect_within(yi, r2, &mut self.data);
-            self.starts.push(self.data.len() as u32);
-        }
+        grid.collect_rows(y, radius * radius, allow_avx2, &mut self.starts, &mut self.data);
         self.y_built.clear();
         self.y_built.extend_from_slice(y);
         self.radius = radius;
