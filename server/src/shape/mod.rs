@@ -9,6 +9,7 @@ pub mod freespace;
 pub mod grid;
 pub mod kernel;
 pub mod register;
+pub mod sampling;
 pub mod space;
 
 pub use register::{RegisterOptions, Registrar, Registration};
