@@ -15,6 +15,72 @@ pub fn subsample(x: &[P3], n: usize, rng: &mut rand_chacha::ChaCha8Rng) -> Vec<P
     idx.into_iter().map(|i| x[i]).collect()
 }
 
+/// An open-addressing hash map from voxel keys to small values, sized for
+/// the points it will see (at most half full). Counting a view's cells by
+/// sorting their keys was most of the time spent before the fit (measured:
+/// stray removal and an even subsample 0.3 and 0.17 ms of a 2,500-point view).
+struct CellMap<V> {
+    keys: Vec<u64>,
+    values: Vec<V>,
+    shift: u32,
+    len: usize,
+}
+
+impl<V: Copy + Default> CellMap<V> {
+    /// Keys are at most 63 bits (21 per axis): this one is never a cell.
+    const EMPTY: u64 = u64::MAX;
+
+    fn for_points(points: usize) -> Self {
+        let slots = (2 * points).next_power_of_two().max(16);
+        Self {
+            keys: vec![Self::EMPTY; slots],
+            values: vec![V::default(); slots],
+            shift: 64 - slots.trailing_zeros(),
+            len: 0,
+        }
+    }
+
+    fn clear(&mut self) {
+        self.keys.fill(Self::EMPTY);
+        self.values.fill(V::default());
+        self.len = 0;
+    }
+
+    /// The slot of `key`, or the empty slot where it would go.
+    #[inline]
+    fn slot(&self, key: u64) -> usize {
+        let mask = self.keys.len() - 1;
+        // Fibonacci hashing: the top bits of the product.
+        let mut i = (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> self.shift) as usize;
+        while self.keys[i] != key && self.keys[i] != Self::EMPTY {
+            i = (i + 1) & mask;
+        }
+        i
+    }
+
+    /// The value of `key`, inserted as the default first.
+    #[inline]
+    fn entry(&mut self, key: u64) -> &mut V {
+        let i = self.slot(key);
+        if self.keys[i] == Self::EMPTY {
+            self.keys[i] = key;
+            self.len += 1;
+        }
+        &mut self.values[i]
+    }
+
+    #[inline]
+    fn get(&self, key: u64) -> Option<V> {
+        let i = self.slot(key);
+        (self.keys[i] == key).then(|| self.values[i])
+    }
+
+    /// The occupied (key, value) pairs, in no particular order.
+    fn iter(&self) -> impl Iterator<Item = (u64, V)> + '_ {
+        self.keys.iter().zip(&self.values).filter(|(k, _)| **k != Self::EMPTY).map(|(k, v)| (*k, *v))
+    }
+}
+
 /// A voxel grid over a cloud's bounding box, cells `h` wide, each named by a
 /// packed key (21 bits per axis).
 #[derive(Clone, Copy)]
@@ -47,13 +113,13 @@ impl VoxelGrid {
             [(hi[0] - lo[0]) * (hi[1] - lo[1]), (hi[1] - lo[1]) * (hi[2] - lo[2]), (hi[0] - lo[0]) * (hi[2] - lo[2])];
         faces.sort_by(f64::total_cmp);
         let mut grid = Self { lo, h: (faces[2].max(1e-12) / cells.max(1) as f64).sqrt().max(1e-9) };
-        let mut keys: Vec<u64> = Vec::with_capacity(probe.len());
+        let mut occupied = CellMap::<()>::for_points(probe.len());
         for _ in 0..6 {
-            keys.clear();
-            keys.extend(probe.iter().map(|p| grid.key(p)));
-            keys.sort_unstable();
-            keys.dedup();
-            let ratio = keys.len() as f64 / cells.max(1) as f64;
+            occupied.clear();
+            for p in &probe {
+                occupied.entry(grid.key(p));
+            }
+            let ratio = occupied.len as f64 / cells.max(1) as f64;
             if (0.95..1.1).contains(&ratio) {
                 break;
             }
@@ -104,21 +170,21 @@ pub fn drop_stray_points(x: &[P3], rng: &mut rand_chacha::ChaCha8Rng) -> Vec<P3>
     }
     let probe = subsample(x, STRAY_PROBE_POINTS, rng);
     let grid = VoxelGrid::with_occupied_cells(&probe, (probe.len() / POINTS_PER_CELL).max(8), rng);
-    let mut keys: Vec<u64> = probe.iter().map(|p| grid.key(p)).collect();
-    keys.sort_unstable();
-    // (key, probe points in the cell), sorted by key.
-    let mut counts: Vec<(u64, usize)> = Vec::new();
-    for k in keys {
-        match counts.last_mut() {
-            Some((last, n)) if *last == k => *n += 1,
-            _ => counts.push((k, 1)),
-        }
+    // Probe points per cell, then each cell's block total beside its count.
+    let mut cells = CellMap::<(usize, usize)>::for_points(probe.len());
+    for p in &probe {
+        cells.entry(grid.key(p)).0 += 1;
     }
-    let count_of = |k: u64| counts.binary_search_by_key(&k, |c| c.0).map_or(0, |i| counts[i].1);
-    let block_of = |k: u64| VoxelGrid::block(k).map(count_of).sum::<usize>();
-    let blocks: Vec<usize> = counts.iter().map(|&(k, _)| block_of(k)).collect();
+    let count_of = |cells: &CellMap<(usize, usize)>, k: u64| cells.get(k).map_or(0, |c| c.0);
+    let block_of =
+        |cells: &CellMap<(usize, usize)>, k: u64| VoxelGrid::block(k).map(|b| count_of(cells, b)).sum::<usize>();
+    let occupied: Vec<(u64, usize)> = cells.iter().map(|(k, (n, _))| (k, n)).collect();
+    for &(k, _) in &occupied {
+        let block = block_of(&cells, k);
+        cells.entry(k).1 = block;
+    }
     // The typical point's block: median weighted by points.
-    let mut weighted: Vec<(usize, usize)> = blocks.iter().zip(&counts).map(|(&b, &(_, n))| (b, n)).collect();
+    let mut weighted: Vec<(usize, usize)> = cells.iter().map(|(_, (n, b))| (b, n)).collect();
     weighted.sort_unstable();
     let (mut seen, mut typical) = (0, 1);
     for &(b, n) in &weighted {
@@ -132,7 +198,7 @@ pub fn drop_stray_points(x: &[P3], rng: &mut rand_chacha::ChaCha8Rng) -> Vec<P3>
     // A point of the cloud in a probed cell, or (rarely) in a cell the probe missed.
     let keep = |p: &P3| {
         let k = grid.key(p);
-        let block = counts.binary_search_by_key(&k, |c| c.0).map_or_else(|_| block_of(k) + 1, |i| blocks[i]);
+        let block = cells.get(k).map_or_else(|| block_of(&cells, k) + 1, |c| c.1);
         block >= threshold
     };
     let kept: Vec<P3> = x.iter().filter(|p| keep(p)).copied().collect();
@@ -154,16 +220,20 @@ pub fn even_subsample(x: &[P3], n: usize, rng: &mut rand_chacha::ChaCha8Rng) -> 
     }
     // Aim a little above n so the trim below keeps the cover even.
     let grid = VoxelGrid::with_occupied_cells(x, (1.15 * n as f64) as usize, rng);
-    // One representative per cell: sort (key, random tie-break) and keep each cell's first.
-    let mut tagged: Vec<(u64, u32, u32)> =
-        x.iter().enumerate().map(|(i, p)| (grid.key(p), rng.random(), i as u32)).collect();
-    tagged.sort_unstable();
-    let mut chosen: Vec<u32> = Vec::new();
-    for (k, t) in tagged.iter().enumerate() {
-        if k == 0 || tagged[k - 1].0 != t.0 {
-            chosen.push(t.2);
+    // One representative per cell: the point of least (random tag, index),
+    // the cells in key order (what sorting (key, tag, index) would give).
+    let mut best = CellMap::<(u32, u32)>::for_points(x.len());
+    for (i, p) in x.iter().enumerate() {
+        let tag: u32 = rng.random();
+        let (k, cand) = (grid.key(p), (tag, i as u32));
+        let slot = best.slot(k);
+        if best.keys[slot] == CellMap::<(u32, u32)>::EMPTY || cand < best.values[slot] {
+            *best.entry(k) = cand;
         }
     }
+    let mut cells: Vec<(u64, u32)> = best.iter().map(|(k, (_, i))| (k, i)).collect();
+    cells.sort_unstable();
+    let mut chosen: Vec<u32> = cells.into_iter().map(|(_, i)| i).collect();
     if chosen.len() > n {
         let keep = rand::seq::index::sample(rng, chosen.len(), n).into_vec();
         chosen = keep.into_iter().map(|k| chosen[k]).collect();
