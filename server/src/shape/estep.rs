@@ -393,26 +393,30 @@ impl NeighbourList {
     fn pad(&mut self, b: &F32Buffers) {
         let pp = &mut self.padded;
         let n = b.xs[0].len();
+        // Row starts first, so the columns are sized once and written by index.
         pp.starts.clear();
+        pp.starts.push(0);
+        let mut total = 0;
+        for w in self.starts.windows(2) {
+            total += ((w[1] - w[0]) as usize).next_multiple_of(LANES);
+            pp.starts.push(total as u32);
+        }
         pp.data.clear();
+        pp.data.resize(total, n as u32);
         for c in pp.x.iter_mut() {
             c.clear();
+            c.resize(total, FAR_AWAY);
         }
-        pp.starts.push(0);
-        for w in self.starts.windows(2) {
-            for &j in &self.data[w[0] as usize..w[1] as usize] {
-                pp.data.push(j);
-                for d in 0..3 {
-                    pp.x[d].push(b.xs[d][j as usize]);
-                }
+        let [x0, x1, x2] = &mut pp.x;
+        for (w, &o) in self.starts.windows(2).zip(&pp.starts) {
+            let row = &self.data[w[0] as usize..w[1] as usize];
+            let o = o as usize;
+            for (k, &j) in row.iter().enumerate() {
+                pp.data[o + k] = j;
+                x0[o + k] = b.xs[0][j as usize];
+                x1[o + k] = b.xs[1][j as usize];
+                x2[o + k] = b.xs[2][j as usize];
             }
-            while !pp.data.len().is_multiple_of(LANES) {
-                pp.data.push(n as u32);
-                for c in pp.x.iter_mut() {
-                    c.push(FAR_AWAY);
-                }
-            }
-            pp.starts.push(pp.data.len() as u32);
         }
         self.padded_current = true;
     }
