@@ -308,23 +308,50 @@ pub fn place_instance(
     episodes: usize,
 ) -> Result<Vec<PoseOutcome>, SimError> {
     setup.ranges.validate()?;
-    let mut rig = TaskRig::build(asset, planner, instance, &setup.base, "place", Vec::new(), Vec::new())?;
+    pose_task_instance(
+        asset,
+        planner,
+        instance,
+        &setup.base,
+        "place",
+        (first_seed, episodes),
+        |seed, table_z| setup.ranges.sample(seed, table_z),
+        |plan, episode| PlaceController::new(asset.model(), plan, episode.goal, &setup.script),
+    )
+}
+
+/// One tool's goal-pose episodes (Place mug, Position drill): its scene
+/// built once, then `episodes` episodes (seeds `first_seed`,
+/// `first_seed + 1`, ...) drawn by `sample`, each with the planner's grasp
+/// for the tool where it starts and the task's controller.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn pose_task_instance<C: PoseController>(
+    asset: &HandAsset,
+    planner: &mut GraspPlanner,
+    instance: &Instance,
+    base: &LiftSetup,
+    task: &str,
+    (first_seed, episodes): (u64, usize),
+    sample: impl Fn(u64, f64) -> PoseEpisode,
+    controller: impl Fn(&GraspPlan, &PoseEpisode) -> C,
+) -> Result<Vec<PoseOutcome>, SimError> {
+    let mut rig = TaskRig::build(asset, planner, instance, base, task, Vec::new(), Vec::new())?;
     let runs = rig.run_seeded(
         planner,
         first_seed,
         episodes,
-        |seed, table_z| setup.ranges.sample(seed, table_z),
+        sample,
         |episode| episode.start,
         |rig, plan, episode| {
-            run_place(
+            run_pose_episode(
                 &rig.scene,
                 &mut rig.data,
                 asset.model(),
                 plan,
                 &rig.height_points,
                 episode,
-                &setup.script,
-                setup.base.physics.control_hz,
+                base.physics.control_hz,
+                |plan| controller(plan, episode),
             )
         },
     )?;

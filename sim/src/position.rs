@@ -17,11 +17,11 @@ use mujoco_rs::prelude::MjData;
 use mujoco_rs::wrappers::mj_model::traits::ModelType;
 use nalgebra::{Isometry3, Point3};
 
-use crate::carry::{CarryController, Steering, TaskRig};
+use crate::carry::{CarryController, Steering};
 use crate::engine::SimError;
 use crate::episode::{ease, lerp_pose, LiftScript, LiftSetup};
 use crate::hand::HandAsset;
-use crate::place::{run_pose_episode, PoseController, PoseOutcome};
+use crate::place::{pose_task_instance, run_pose_episode, PoseController, PoseOutcome};
 use crate::plan::{GraspPlan, GraspPlanner};
 use crate::scene::Scene;
 use crate::task::{DrillRanges, PoseEpisode};
@@ -127,27 +127,16 @@ pub fn position_instance(
         });
     }
     setup.ranges.validate()?;
-    let mut rig = TaskRig::build(asset, planner, instance, &setup.base, "position", Vec::new(), Vec::new())?;
-    let runs = rig.run_seeded(
+    pose_task_instance(
+        asset,
         planner,
-        first_seed,
-        episodes,
+        instance,
+        &setup.base,
+        "position",
+        (first_seed, episodes),
         |seed, table_z| setup.ranges.sample(seed, table_z),
-        |episode| episode.start,
-        |rig, plan, episode| {
-            run_position(
-                &rig.scene,
-                &mut rig.data,
-                asset.model(),
-                plan,
-                &rig.height_points,
-                episode,
-                &setup.script,
-                setup.base.physics.control_hz,
-            )
-        },
-    )?;
-    Ok(runs.into_iter().map(|(o, grasp)| PoseOutcome { grasp, ..o }).collect())
+        |plan, episode| DrillController::new(asset.model(), plan, episode.goal, &setup.script),
+    )
 }
 
 #[cfg(test)]
