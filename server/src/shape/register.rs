@@ -746,7 +746,6 @@ impl YawSweep<'_> {
         // Dense sums only: every turn moves the model too far for a neighbour
         // list to be reused (measured: mug fit p50 −0.2 ms).
         estep.truncate_below = 0.0;
-        let mut post = Posteriors::default();
         let view = View { normals: self.normals, viewpoint: self.viewpoint, occlusion: None };
         let mut weights = Vec::new();
         // The lead turned by `steps` sweep steps (fractions allowed) about the pivot line.
@@ -759,9 +758,8 @@ impl YawSweep<'_> {
                 let mut pose = turned(i as f64);
                 let mut y_world: Vec<P3> = y_model.iter().map(|y| pose.apply(y)).collect();
                 let w = view.weights(&pose, &y_world, lead.sigma2, &mut weights);
-                estep.run_weighted(&y_world, w, lead.sigma2, opts.outlier_weight, &mut post);
-                if post.np > 1e-9 {
-                    pose.t = fitted_translation(self.x, &y_model, &post, &pose);
+                if let Some(shift) = estep.centroid_shift(&y_world, w, lead.sigma2, opts.outlier_weight) {
+                    pose.t += Vector3::from(shift);
                     y_world.iter_mut().zip(&y_model).for_each(|(w, y)| *w = pose.apply(y));
                 }
                 let w = view.weights(&pose, &y_world, lead.sigma2, &mut weights);
