@@ -69,6 +69,22 @@ impl<V: Copy + Default> CellMap<V> {
         &mut self.values[i]
     }
 
+    /// Sets `key`'s value to `value` when it has none yet or a greater one.
+    #[inline]
+    fn keep_least(&mut self, key: u64, value: V)
+    where
+        V: PartialOrd,
+    {
+        let i = self.slot(key);
+        if self.keys[i] == Self::EMPTY {
+            self.keys[i] = key;
+            self.len += 1;
+            self.values[i] = value;
+        } else if value < self.values[i] {
+            self.values[i] = value;
+        }
+    }
+
     #[inline]
     fn get(&self, key: u64) -> Option<V> {
         let i = self.slot(key);
@@ -225,11 +241,7 @@ pub fn even_subsample(x: &[P3], n: usize, rng: &mut rand_chacha::ChaCha8Rng) -> 
     let mut best = CellMap::<(u32, u32)>::for_points(x.len());
     for (i, p) in x.iter().enumerate() {
         let tag: u32 = rng.random();
-        let (k, cand) = (grid.key(p), (tag, i as u32));
-        let slot = best.slot(k);
-        if best.keys[slot] == CellMap::<(u32, u32)>::EMPTY || cand < best.values[slot] {
-            *best.entry(k) = cand;
-        }
+        best.keep_least(grid.key(p), (tag, i as u32));
     }
     let mut cells: Vec<(u64, u32)> = best.iter().map(|(k, (_, i))| (k, i)).collect();
     cells.sort_unstable();
@@ -246,6 +258,34 @@ pub fn even_subsample(x: &[P3], n: usize, rng: &mut rand_chacha::ChaCha8Rng) -> 
 mod tests {
     use super::*;
     use rand::SeedableRng;
+
+    #[test]
+    fn cell_map_counts_and_keeps_the_least_like_an_ordered_map() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
+        // Few distinct keys among many (collisions in the table's probe runs too).
+        let keys: Vec<u64> = (0..3000).map(|_| rng.random_range(0..700u64) * 0x1_0000_0001).collect();
+        let mut counts = CellMap::<usize>::for_points(keys.len());
+        let mut least = CellMap::<(u32, u32)>::for_points(keys.len());
+        let mut want: std::collections::BTreeMap<u64, (usize, (u32, u32))> = Default::default();
+        for (i, &k) in keys.iter().enumerate() {
+            let v = (rng.random::<u32>(), i as u32);
+            *counts.entry(k) += 1;
+            least.keep_least(k, v);
+            let e = want.entry(k).or_insert((0, v));
+            e.0 += 1;
+            e.1 = e.1.min(v);
+        }
+        assert_eq!(counts.len, want.len());
+        assert_eq!(least.len, want.len());
+        for (&k, &(n, v)) in &want {
+            assert_eq!(counts.get(k), Some(n));
+            assert_eq!(least.get(k), Some(v));
+        }
+        assert_eq!(counts.get(u64::MAX - 1), None);
+        let mut listed: Vec<u64> = counts.iter().map(|(k, _)| k).collect();
+        listed.sort_unstable();
+        assert_eq!(listed, want.keys().copied().collect::<Vec<_>>());
+    }
 
     /// A patch of surface (a 10 cm half-cylinder, `n` points) with 10 % points
     /// scattered uniformly through its bounding box grown by 20 %.
