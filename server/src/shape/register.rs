@@ -212,17 +212,12 @@ struct Models {
     /// Canonical outward normals of each level's points (normalised frame = canonical axes).
     coarse_normals: Vec<P3>,
     race_normals: Vec<P3>,
-    fine_normals: Vec<P3>,
     coarse: LinearModel,
     /// Middle resolution, for the race between the surviving hypotheses.
     race: LinearModel,
-    fine: LinearModel,
-    /// The fine model's latent normal equations, precomputed.
-    fine_latent: LatentStep,
-    /// The densest level, for the last few iterations (the polish).
-    polish: LinearModel,
-    polish_normals: Vec<P3>,
-    polish_latent: LatentStep,
+    /// The refine's level, and the densest, for the last few iterations (the polish).
+    fine: LatentLevel,
+    polish: LatentLevel,
     surface: LinearModel,
     keypoints: LinearModel,
 }
@@ -243,26 +238,32 @@ impl Models {
         let polish_idx = farthest_points(&canonical, POLISH_MODEL_POINTS);
         // Farthest-point orders nest: each level's points are the first of the next's.
         let fine_idx = &polish_idx[..FINE_MODEL_POINTS.min(polish_idx.len())];
-        let polish = surface.select(&polish_idx);
         let race_idx = &polish_idx[..200.min(polish_idx.len())];
         let coarse_idx = &polish_idx[..120.min(polish_idx.len())];
         let normals = |idx: &[usize]| idx.iter().map(|&i| space.surface_normals[i]).collect();
-        let fine = surface.select(fine_idx);
+        let level = |idx: &[usize]| {
+            let model = surface.select(idx);
+            LatentLevel { step: LatentStep::new(&model), model, normals: normals(idx) }
+        };
         Self {
-            fine_latent: LatentStep::new(&fine),
-            polish_latent: LatentStep::new(&polish),
-            polish_normals: normals(&polish_idx),
-            polish,
+            fine: level(fine_idx),
+            polish: level(&polish_idx),
             coarse_normals: normals(coarse_idx),
             race_normals: normals(race_idx),
-            fine_normals: normals(fine_idx),
             coarse: surface.select(coarse_idx),
             race: surface.select(race_idx),
-            fine,
             surface,
             keypoints: model(&kp),
         }
     }
+}
+
+/// A model level the latent is fitted on: its points, their canonical
+/// normals and its latent normal equations.
+struct LatentLevel {
+    model: LinearModel,
+    normals: Vec<P3>,
+    step: LatentStep,
 }
 
 /// Model points of the refine stage and of the polish (farthest-point
@@ -309,11 +310,7 @@ impl Registrar {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed);
         let all: Vec<P3> = cloud.iter().map(|p| [p.x, p.y, p.z]).collect();
         let all = drop_stray_points(&all, &mut rng);
-        let fine_x = if opts.even_sampling {
-            even_subsample(&all, opts.fine_points, &mut rng)
-        } else {
-            subsample(&all, opts.fine_points, &mut rng)
-        };
+        let fine_x = view_subset(&all, opts.fine_points, opts.even_sampling, &mut rng);
         let race_x = subsample(&fine_x, opts.race_points, &mut rng);
         let coarse_x = subsample(&race_x, opts.coarse_points, &mut rng);
         let models = if opts.fit_latent { &self.deformable } else { &self.rigid };
@@ -445,40 +442,29 @@ impl Registrar {
         }
         stage.race = ms(t_stage);
         let t_stage = Instant::now();
-        let fit = em(
-            &models.fine,
-            View { normals: &models.fine_normals, viewpoint, occlusion: free_space.as_ref() },
-            &fine_x,
-            lead.pose,
-            lead.latent.clone(),
-            prior.map(|var| (var, &models.fine_latent)),
-            Some(lead.sigma2),
-            opts,
-            opts.fine_iters,
-            &self.space.norm,
-        );
+        // The latent fits, from `start` on a level and a subset of the view.
+        let fit_latent = |level: &LatentLevel, x: &[P3], start: &Fit, iters: usize| {
+            em(
+                &level.model,
+                View { normals: &level.normals, viewpoint, occlusion: free_space.as_ref() },
+                x,
+                start.pose,
+                start.latent.clone(),
+                prior.map(|var| (var, &level.step)),
+                Some(start.sigma2),
+                opts,
+                iters,
+                &self.space.norm,
+            )
+        };
+        let fit = fit_latent(&models.fine, &fine_x, &lead, opts.fine_iters);
         iterations += fit.iterations;
         stage.refine = ms(t_stage);
         let t_stage = Instant::now();
         // Polish: the refine's fit continued on the densest model and more of the view.
         let fit = if opts.polish_points > 0 && opts.polish_iters > 0 {
-            let polish_x = if opts.even_sampling {
-                even_subsample(&all, opts.polish_points, &mut rng)
-            } else {
-                subsample(&all, opts.polish_points, &mut rng)
-            };
-            let polished = em(
-                &models.polish,
-                View { normals: &models.polish_normals, viewpoint, occlusion: free_space.as_ref() },
-                &polish_x,
-                fit.pose,
-                fit.latent.clone(),
-                prior.map(|var| (var, &models.polish_latent)),
-                Some(fit.sigma2),
-                opts,
-                opts.polish_iters,
-                &self.space.norm,
-            );
+            let polish_x = view_subset(&all, opts.polish_points, opts.even_sampling, &mut rng);
+            let polished = fit_latent(&models.polish, &polish_x, &fit, opts.polish_iters);
             iterations += polished.iterations;
             polished
         } else {
@@ -907,6 +893,15 @@ fn dot_slices(a: &[f64], b: &[f64]) -> f64 {
         }
     }
     part.iter().sum::<f64>() + tail
+}
+
+/// At most `n` points of the view: spread evenly over its surface, or uniformly.
+fn view_subset(x: &[P3], n: usize, even: bool, rng: &mut rand_chacha::ChaCha8Rng) -> Vec<P3> {
+    if even {
+        even_subsample(x, n, rng)
+    } else {
+        subsample(x, n, rng)
+    }
 }
 
 /// EM over pose (and latent, when `prior` is given).
