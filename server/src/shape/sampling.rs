@@ -58,14 +58,23 @@ impl<V: Copy + Default> CellMap<V> {
         i
     }
 
-    /// The value of `key`, inserted as the default first.
+    /// The slot of `key`, which is inserted (with the default value) when
+    /// absent, and whether it was.
     #[inline]
-    fn entry(&mut self, key: u64) -> &mut V {
+    fn occupy(&mut self, key: u64) -> (usize, bool) {
         let i = self.slot(key);
-        if self.keys[i] == Self::EMPTY {
+        let new = self.keys[i] == Self::EMPTY;
+        if new {
             self.keys[i] = key;
             self.len += 1;
         }
+        (i, new)
+    }
+
+    /// The value of `key`, inserted as the default first.
+    #[inline]
+    fn entry(&mut self, key: u64) -> &mut V {
+        let (i, _) = self.occupy(key);
         &mut self.values[i]
     }
 
@@ -75,12 +84,8 @@ impl<V: Copy + Default> CellMap<V> {
     where
         V: PartialOrd,
     {
-        let i = self.slot(key);
-        if self.keys[i] == Self::EMPTY {
-            self.keys[i] = key;
-            self.len += 1;
-            self.values[i] = value;
-        } else if value < self.values[i] {
+        let (i, new) = self.occupy(key);
+        if new || value < self.values[i] {
             self.values[i] = value;
         }
     }
