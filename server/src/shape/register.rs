@@ -13,7 +13,8 @@
 //! The pose is unknown, so several rotation hypotheses (principal axes of the
 //! view against the canonical's, and, when the world's up is known, the tool
 //! upright at several yaws) are first scored cheaply on small subsets with
-//! the mean shape; the best survive to the full latent fit.
+//! the mean shape; the best survive to the full latent fit, which ends with a
+//! few iterations on a model twice as dense (the polish).
 
 use super::cpd::{weighted_similarity, Normalization};
 use super::estep::{dist2, dot, initial_sigma2, EStep, Posteriors, P3};
