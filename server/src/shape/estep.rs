@@ -10,8 +10,49 @@
 //!   matter (see `grid.rs` for why not a k-d tree), and a Verlet neighbour
 //!   list keeps them over the iterations in which the model moves little.
 
-use super::fastexp::{exp_neg, exp_neg_f32, madd};
+use super::fastexp::{exp2_neg_f32, exp_neg, madd, EXP2_CUT_F32, EXP2_SERIES_F32};
 use super::grid::RadiusGrid;
+
+#[cfg(target_arch = "x86_64")]
+mod avx512;
+
+/// The vector kernels an E-step takes: the widest the CPU has, up to a cap
+/// (tests hold each level to the textbook sums).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Simd {
+    /// Loops written for LLVM's vectoriser.
+    Portable,
+    /// AVX2 and FMA, eight f32 lanes.
+    Avx2,
+    /// AVX-512F, sixteen f32 lanes (single precision only).
+    Avx512,
+}
+
+impl Simd {
+    /// The widest level this CPU runs, up to `cap` and to the environment's
+    /// `GRASPD_SIMD` (portable, avx2 or avx512): the kernels' sums round
+    /// differently, so fits agree bit for bit only between machines on one level.
+    pub fn detect(cap: Simd) -> Simd {
+        static ENV_CAP: std::sync::OnceLock<Simd> = std::sync::OnceLock::new();
+        let env_cap = *ENV_CAP.get_or_init(|| match std::env::var("GRASPD_SIMD").as_deref() {
+            Ok("portable") => Simd::Portable,
+            Ok("avx2") => Simd::Avx2,
+            _ => Simd::Avx512,
+        });
+        let cap = cap.min(env_cap);
+        #[cfg(target_arch = "x86_64")]
+        {
+            if cap >= Simd::Avx512 && std::is_x86_feature_detected!("avx512f") {
+                return Simd::Avx512;
+            }
+            if cap >= Simd::Avx2 && std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                return Simd::Avx2;
+            }
+        }
+        let _ = cap;
+        Simd::Portable
+    }
+}
 
 pub type P3 = [f64; 3];
 
@@ -60,8 +101,8 @@ pub struct EStep {
     list: NeighbourList,
     /// Statistics computed and thrown away by `neg_log_likelihood`.
     scratch: Posteriors,
-    /// Off: the portable loops even where AVX2 is there (tests hold both to the textbook).
-    allow_avx2: bool,
+    /// The kernels taken (`Simd::detect` at construction; tests lower it).
+    simd: Simd,
 }
 
 impl EStep {
@@ -85,7 +126,7 @@ impl EStep {
             den: Vec::new(),
             list: NeighbourList::default(),
             scratch: Posteriors::default(),
-            allow_avx2: true,
+            simd: Simd::detect(Simd::Avx512),
         }
     }
 
@@ -159,11 +200,17 @@ impl EStep {
         let c = outlier_constant(sigma2, w, m, n);
         #[cfg(target_arch = "x86_64")]
         {
-            if self.single_precision && !self.truncates(sigma2) && avx2(self.allow_avx2) {
+            if self.single_precision && !self.truncates(sigma2) && self.simd >= Simd::Avx2 {
                 let b = &mut self.f32buf;
                 b.load(&self.x, y, weights);
-                // SAFETY: the CPU supports the features the function is compiled for.
-                let (mx, my, np) = unsafe { dense_centroids_f32_avx2(b, &self.x, (-0.5 / sigma2) as f32, c) };
+                let k = exponent_f32(sigma2);
+                // SAFETY: `Simd::detect` found the features the functions are compiled for.
+                let (mx, my, np) = unsafe {
+                    match self.simd {
+                        Simd::Avx512 => avx512::dense_centroids(b, &self.x, k, c),
+                        _ => dense_centroids_f32_avx2(b, &self.x, k, c),
+                    }
+                };
                 return (np > 1e-9).then(|| [0, 1, 2].map(|d| (mx[d] - my[d]) / np));
             }
         }
@@ -197,15 +244,16 @@ impl EStep {
         c: f64,
         out: &mut Posteriors,
     ) {
-        let (m, k) = (y.len(), (-0.5 / sigma2) as f32);
+        let (m, k) = (y.len(), exponent_f32(sigma2));
         let b = &mut self.f32buf;
         b.load(&self.x, y, weights);
         #[cfg(target_arch = "x86_64")]
         {
-            if avx2(self.allow_avx2) {
-                // SAFETY: the CPU supports the features the function is compiled for.
-                unsafe { dense_rows_f32_avx2::<STATS>(b, m, k, c, out) };
-                return;
+            // SAFETY: `Simd::detect` found the features the functions are compiled for.
+            match self.simd {
+                Simd::Avx512 => return unsafe { avx512::dense_rows::<STATS>(b, m, k, c, out) },
+                Simd::Avx2 => return unsafe { dense_rows_f32_avx2::<STATS>(b, m, k, c, out) },
+                Simd::Portable => {}
             }
         }
         dense_rows_f32::<false, STATS>(b, m, k, c, out);
@@ -231,8 +279,8 @@ impl EStep {
         let (ys, row, x, acc, pi) = (&self.ys, &mut self.row, &self.x, &mut self.acc, &self.pi);
         #[cfg(target_arch = "x86_64")]
         {
-            if avx2(self.allow_avx2) {
-                // SAFETY: the CPU supports the features the function is compiled for.
+            if self.simd >= Simd::Avx2 {
+                // SAFETY: `Simd::detect` found the features the function is compiled for.
                 unsafe { dense_rows_avx2(x, ys, pi, row, acc, m, k, c, out) };
                 return;
             }
@@ -260,7 +308,7 @@ impl EStep {
                     self.grid.build(&self.x, radius);
                     self.grid_radius = radius;
                 }
-                self.list.build(&self.grid, y, radius, self.allow_avx2);
+                self.list.build(&self.grid, y, radius, self.simd >= Simd::Avx2);
             }
         }
         let k = -0.5 / sigma2;
@@ -269,17 +317,19 @@ impl EStep {
             b.load(&self.x, y, weights);
             #[cfg(target_arch = "x86_64")]
             {
-                if avx2(self.allow_avx2) {
+                if self.simd >= Simd::Avx2 {
                     if !self.list.padded_current {
                         self.list.pad(b);
                     }
-                    // SAFETY: the CPU supports the features the function is compiled for.
-                    unsafe { padded_pairs_f32_avx2(b, &self.list.padded, k as f32, c, out) };
+                    let pp = &self.list.padded;
+                    // SAFETY: `Simd::detect` found the features the functions are compiled for.
+                    // (AVX-512 measured no faster here: rows are runs of a few vectors.)
+                    unsafe { padded_pairs_f32_avx2(b, pp, exponent_f32(sigma2), c, out) };
                     return;
                 }
             }
             let NeighbourList { starts, data, .. } = &self.list;
-            listed_pairs_f32::<false>(b, starts, data, k as f32, c, out);
+            listed_pairs_f32::<false>(b, starts, data, exponent_f32(sigma2), c, out);
             return;
         }
         let NeighbourList { starts, data, .. } = &self.list;
@@ -327,12 +377,6 @@ impl EStep {
             out.px[i] = px;
         }
     }
-}
-
-/// Whether to take the AVX2 + FMA kernels: allowed and the CPU has them.
-#[cfg(target_arch = "x86_64")]
-fn avx2(allowed: bool) -> bool {
-    allowed && std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
 }
 
 /// Extra radius of a neighbour list beyond the cutoff, as a fraction of it:
@@ -608,7 +652,7 @@ fn listed_pairs_f32<const FMA: bool>(
             *v = k * madd::<FMA>(dx, dx, madd::<FMA>(dy, dy, dz * dz));
         }
     }
-    e.iter_mut().for_each(|v| *v = exp_neg_f32::<FMA>(*v));
+    e.iter_mut().for_each(|v| *v = exp2_neg_f32::<FMA>(*v));
     let den = &mut acc[0];
     den.clear();
     den.resize(n, 0.0);
@@ -758,11 +802,16 @@ impl LogSum {
     }
 }
 
-/// w·e^{k·|x − y|²} for one data point x and one centroid y.
+/// w·2^{k·|x − y|²} for one data point x and one centroid y (k from `exponent_f32`).
 #[inline(always)]
 fn affinity<const FMA: bool>(x: &[f32; 3], yx: f32, yy: f32, yz: f32, w: f32, k: f32) -> f32 {
     let (dx, dy, dz) = (x[0] - yx, x[1] - yy, x[2] - yz);
-    w * exp_neg_f32::<FMA>(k * madd::<FMA>(dx, dx, madd::<FMA>(dy, dy, dz * dz)))
+    w * exp2_neg_f32::<FMA>(k * madd::<FMA>(dx, dx, madd::<FMA>(dy, dy, dz * dz)))
+}
+
+/// The single-precision kernels' k: e^{−d²/2σ²} = 2^{k·d²} with k = −log₂e/2σ².
+fn exponent_f32(sigma2: f64) -> f32 {
+    (-0.5 * std::f64::consts::LOG2_E / sigma2) as f32
 }
 
 /// A coordinate far from any cloud: its affinities are exactly 0.
@@ -807,7 +856,7 @@ unsafe fn padded_pairs_f32_avx2(b: &mut F32Buffers, pp: &PaddedPairs, k: f32, c:
             let dy = _mm256_sub_ps(_mm256_loadu_ps(x1.add(o)), yy);
             let dz = _mm256_sub_ps(_mm256_loadu_ps(x2.add(o)), yz);
             let d2 = _mm256_fmadd_ps(dx, dx, _mm256_fmadd_ps(dy, dy, _mm256_mul_ps(dz, dz)));
-            _mm256_storeu_ps(ep.add(o), _mm256_mul_ps(w, exp_neg_f32x8(_mm256_mul_ps(kv, d2))));
+            _mm256_storeu_ps(ep.add(o), _mm256_mul_ps(w, exp2_neg_f32x8(_mm256_mul_ps(kv, d2))));
         }
     }
     // Row totals per data point (a scatter), then their inverses; slot n is the padding's.
@@ -883,7 +932,7 @@ unsafe fn dense_rows_f32_avx2<const STATS: bool>(b: &mut F32Buffers, m: usize, k
             let dy = _mm256_sub_ps(x1, _mm256_loadu_ps(yy.add(o)));
             let dz = _mm256_sub_ps(x2, _mm256_loadu_ps(yz.add(o)));
             let d2 = _mm256_fmadd_ps(dx, dx, _mm256_fmadd_ps(dy, dy, _mm256_mul_ps(dz, dz)));
-            let v = _mm256_mul_ps(_mm256_loadu_ps(w.add(o)), exp_neg_f32x8(_mm256_mul_ps(kv, d2)));
+            let v = _mm256_mul_ps(_mm256_loadu_ps(w.add(o)), exp2_neg_f32x8(_mm256_mul_ps(kv, d2)));
             _mm256_storeu_ps(r.add(o), v);
             part = _mm256_add_ps(part, v);
         }
@@ -946,7 +995,7 @@ unsafe fn dense_centroids_f32_avx2(b: &F32Buffers, x: &[P3], k: f32, c: f64) -> 
             let (py0, py1, py2) = (_mm256_loadu_ps(yx.add(o)), _mm256_loadu_ps(yy.add(o)), _mm256_loadu_ps(yz.add(o)));
             let (dx, dy, dz) = (_mm256_sub_ps(x0, py0), _mm256_sub_ps(x1, py1), _mm256_sub_ps(x2, py2));
             let d2 = _mm256_fmadd_ps(dx, dx, _mm256_fmadd_ps(dy, dy, _mm256_mul_ps(dz, dz)));
-            let v = _mm256_mul_ps(_mm256_loadu_ps(w.add(o)), exp_neg_f32x8(_mm256_mul_ps(kv, d2)));
+            let v = _mm256_mul_ps(_mm256_loadu_ps(w.add(o)), exp2_neg_f32x8(_mm256_mul_ps(kv, d2)));
             part = _mm256_add_ps(part, v);
             s0 = _mm256_fmadd_ps(v, py0, s0);
             s1 = _mm256_fmadd_ps(v, py1, s1);
@@ -964,26 +1013,26 @@ unsafe fn dense_centroids_f32_avx2(b: &F32Buffers, x: &[P3], k: f32, c: f64) -> 
     (mx, my, np)
 }
 
-/// `exp_neg_f32::<true>` on eight lanes.
+/// `exp2_neg_f32::<true>` on eight lanes.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 #[inline]
-unsafe fn exp_neg_f32x8(x: std::arch::x86_64::__m256) -> std::arch::x86_64::__m256 {
+unsafe fn exp2_neg_f32x8(t: std::arch::x86_64::__m256) -> std::arch::x86_64::__m256 {
     use std::arch::x86_64::*;
     const MAGIC: f32 = 12582912.0; // 1.5·2²³
-    let floor = _mm256_set1_ps(-60.0);
+    let cut = _mm256_set1_ps(EXP2_CUT_F32);
     let magic = _mm256_set1_ps(MAGIC);
-    let t = _mm256_mul_ps(_mm256_max_ps(x, floor), _mm256_set1_ps(std::f32::consts::LOG2_E));
+    let below = _mm256_cmp_ps::<_CMP_LT_OQ>(t, cut);
+    let t = _mm256_max_ps(t, cut);
     let r = _mm256_add_ps(t, magic);
     let n = _mm256_sub_ps(r, magic);
-    let f = _mm256_mul_ps(_mm256_sub_ps(t, n), _mm256_set1_ps(std::f32::consts::LN_2));
-    let mut p = _mm256_set1_ps(1.0 / 720.0);
-    for c in [1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0, 1.0] {
-        p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(c));
+    let f = _mm256_sub_ps(t, n);
+    let mut p = _mm256_set1_ps(EXP2_SERIES_F32[0]);
+    for c in &EXP2_SERIES_F32[1..] {
+        p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(*c));
     }
     let ni = _mm256_sub_epi32(_mm256_castps_si256(r), _mm256_castps_si256(magic));
     let scale = _mm256_castsi256_ps(_mm256_slli_epi32::<23>(_mm256_add_epi32(ni, _mm256_set1_epi32(127))));
-    let below = _mm256_cmp_ps::<_CMP_LT_OQ>(x, floor);
     _mm256_andnot_ps(below, _mm256_mul_ps(p, scale))
 }
 
@@ -1088,28 +1137,35 @@ mod tests {
         assert_close(&out, &reference(&x, &y, 0.05, 0.1), 1e-4);
     }
 
+    /// The kernel levels this CPU runs (each at most once).
+    fn simd_levels() -> Vec<Simd> {
+        let mut levels: Vec<Simd> = [Simd::Portable, Simd::Avx2, Simd::Avx512].map(Simd::detect).to_vec();
+        levels.dedup();
+        levels
+    }
+
     #[test]
-    fn both_single_precision_kernels_match_the_textbook_e_step() {
-        // 203 moving points: not a whole number of vectors.
+    fn every_single_precision_kernel_matches_the_textbook_e_step() {
+        // 203 moving points: not a whole number of vectors (a masked tail in AVX-512).
         let (x, y) = (cloud(300, 5), cloud(203, 6));
-        for avx2 in [false, true] {
+        for simd in simd_levels() {
             // Dense (large σ) and truncated (small σ) regimes.
             for (s2, truncated) in [(0.05, false), (4e-4, true)] {
                 let mut e = EStep::new(&x);
                 e.single_precision = true;
-                e.allow_avx2 = avx2;
+                e.simd = simd;
                 let mut out = Posteriors::default();
                 e.run(&y, s2, 0.1, &mut out);
                 assert_eq!(!e.list.data.is_empty(), truncated, "σ² {s2}");
                 assert_close(&out, &reference(&x, &y, s2, 0.1), 1e-4);
                 let nll = e.neg_log_likelihood(&y, None, s2, 0.1);
-                assert!((nll - out.neg_log_likelihood).abs() < 1e-6 * nll.abs().max(1.0), "avx2 {avx2}, σ² {s2}");
+                assert!((nll - out.neg_log_likelihood).abs() < 1e-6 * nll.abs().max(1.0), "{simd:?}, σ² {s2}");
             }
         }
     }
 
     #[test]
-    fn centroid_shift_matches_the_posteriors_in_both_kernels() {
+    fn centroid_shift_matches_the_posteriors_in_every_kernel() {
         // 203 moving points (not a whole number of vectors), with weights.
         let (x, y) = (cloud(300, 13), cloud(203, 14));
         let weights: Vec<f64> = (0..y.len()).map(|i| if i % 4 == 0 { 0.05 } else { 1.0 }).collect();
@@ -1124,13 +1180,13 @@ mod tests {
             let my: f64 = y.iter().zip(&post.p1).map(|(p, w)| w * p[d]).sum();
             want[d] = (mx - my) / post.np;
         }
-        for avx2 in [false, true] {
+        for simd in simd_levels() {
             let mut e = EStep::new(&x);
             e.single_precision = true;
-            e.allow_avx2 = avx2;
+            e.simd = simd;
             let got = e.centroid_shift(&y, Some(&weights), s2, 0.1).unwrap();
             for d in 0..3 {
-                assert!((got[d] - want[d]).abs() < 1e-5, "avx2 {avx2}: {got:?} vs {want:?}");
+                assert!((got[d] - want[d]).abs() < 1e-5, "{simd:?}: {got:?} vs {want:?}");
             }
         }
         // Nothing explained: no shift.

@@ -52,28 +52,50 @@ pub fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
     }
 }
 
-/// e^x for x ≤ 0 in single precision (relative error below 1e-5, from f32
-/// rounding of the argument at large |x|; 1e-7 near 0): eight
-/// lanes per AVX2 register, for the registration's E-step where f32 is plenty.
-/// Below −60 (e⁻⁶⁰ ≈ 1e-26) it returns exactly 0: f32 subnormals begin at
-/// e⁻⁸⁷, and a product with a weight or a coordinate would land among them
-/// (measured: a registration with view weights ran 5× slower from that alone).
-/// The polynomial (degree 6 on |f| ≤ ln2/2: truncation error 1.2e-7, at
-/// f32's own rounding) is evaluated in fused multiply-adds when `FMA`.
+/// Below this exponent of 2 (e⁻⁶⁰ ≈ 1e-26) the single-precision exponentials
+/// return exactly 0: f32 subnormals begin at e⁻⁸⁷, and a product with a
+/// weight or a coordinate would land among them (measured: a registration
+/// with view weights ran 5× slower from that alone).
+pub const EXP2_CUT_F32: f32 = -60.0 * std::f32::consts::LOG2_E;
+
+/// Coefficients of 2^f = e^{f·ln2} for |f| ≤ 1/2, highest first: the degree-6
+/// series of e^g (truncation error 1.2e-7 on |g| ≤ ln2/2, at f32's own
+/// rounding) with the powers of ln2 folded in, so the vector kernels spend
+/// no multiplication turning base 2 into base e.
+pub const EXP2_SERIES_F32: [f32; 7] = {
+    const L: f32 = std::f32::consts::LN_2;
+    [
+        L * L * L * L * L * L / 720.0,
+        L * L * L * L * L / 120.0,
+        L * L * L * L / 24.0,
+        L * L * L / 6.0,
+        L * L / 2.0,
+        L,
+        1.0,
+    ]
+};
+
+/// 2^t for t ≤ 0 in single precision (relative error below 1e-5, from f32
+/// rounding of the argument at large |t|; 1e-7 near 0), exactly 0 below
+/// `EXP2_CUT_F32`: the registration's E-step, where f32 is plenty, computes
+/// e^{k·d²} as 2^{k·log₂e·d²} with log₂e folded into k. The vector kernels
+/// (`estep`) do the same operations in the same order; the polynomial is
+/// evaluated in fused multiply-adds when `FMA`.
 #[inline(always)]
-pub fn exp_neg_f32<const FMA: bool>(x: f32) -> f32 {
+pub fn exp2_neg_f32<const FMA: bool>(t: f32) -> f32 {
     const MAGIC: f32 = 12582912.0; // 1.5·2²³
-    let t = (if x < -60.0 { -60.0 } else { x }) * std::f32::consts::LOG2_E;
+    let below = t < EXP2_CUT_F32;
+    let t = if below { EXP2_CUT_F32 } else { t };
     let r = t + MAGIC;
     let n = r - MAGIC;
-    let f = (t - n) * std::f32::consts::LN_2;
-    let mut p = 1.0 / 720.0;
-    for c in [1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0, 1.0] {
-        p = madd::<FMA>(p, f, c);
+    let f = t - n;
+    let mut p = EXP2_SERIES_F32[0];
+    for c in &EXP2_SERIES_F32[1..] {
+        p = madd::<FMA>(p, f, *c);
     }
     let ni = (r.to_bits() as i32).wrapping_sub(MAGIC.to_bits() as i32);
     let e = p * f32::from_bits(((ni + 127) as u32) << 23);
-    if x < -60.0 {
+    if below {
         0.0
     } else {
         e
@@ -95,19 +117,20 @@ mod tests {
         assert_eq!(exp_neg(0.0), 1.0);
         let mut worst32: f64 = 0.0;
         for i in 0..100_000 {
-            let x = -(i as f32) * 0.0006; // down to −60, the cut
-            let (a, b) = (exp_neg_f32::<false>(x) as f64, (x as f64).exp());
+            let t = -(i as f32) * 0.00086; // down to −86, the cut
+            let (a, b) = (exp2_neg_f32::<false>(t) as f64, (t as f64).exp2());
             worst32 = worst32.max(((a - b) / b).abs());
         }
         assert!(worst32 < 1e-5, "worst f32 relative error {worst32}");
         for i in 0..100_000 {
-            let x = -(i as f32) * 0.0006;
-            let (a, b) = (exp_neg_f32::<true>(x) as f64, (x as f64).exp());
-            assert!(((a - b) / b).abs() < 1e-5, "fused: e^{x} = {a}, not {b}");
+            let t = -(i as f32) * 0.00086;
+            let (a, b) = (exp2_neg_f32::<true>(t) as f64, (t as f64).exp2());
+            assert!(((a - b) / b).abs() < 1e-5, "fused: 2^{t} = {a}, not {b}");
         }
         assert_eq!(exp_neg(-1e6), 0.0);
-        assert_eq!(exp_neg_f32::<false>(-61.0), 0.0);
+        assert_eq!(exp2_neg_f32::<false>(-87.0), 0.0);
+        assert_eq!(exp2_neg_f32::<false>(-1e30), 0.0);
         // Just above the cut: a normal number, not a subnormal.
-        assert!(exp_neg_f32::<false>(-59.9).is_normal() && exp_neg(-599.0).is_normal());
+        assert!(exp2_neg_f32::<false>(-86.5).is_normal() && exp_neg(-599.0).is_normal());
     }
 }
