@@ -52,10 +52,31 @@ fn fold_to_eight(v: __m512) -> [f32; LANES] {
     let mut l = [0.0f32; WIDE];
     // SAFETY: `l` holds sixteen lanes.
     unsafe { _mm512_storeu_ps(l.as_mut_ptr(), v) };
-    std::array::from_fn(|i| l[i] + l[i + LANES])
+    let mut eight = [0.0; LANES];
+    for i in 0..LANES {
+        eight[i] = l[i] + l[i + LANES];
+    }
+    eight
 }
 
-/// `dense_rows_f32_avx2` on sixteen lanes.
+/// The sum of a vector's lanes in double precision.
+#[target_feature(enable = "avx512f")]
+#[inline]
+fn lane_sum_f64(v: __m512) -> f64 {
+    let mut sum = 0.0;
+    for l in fold_to_eight(v) {
+        sum += l as f64;
+    }
+    sum
+}
+
+/// `dense_rows_f32_avx2` on sixteen lanes, four data points (rows) at a
+/// time: the moving points are loaded once per block, and the posterior sums
+/// read and written once per block instead of once per row. Measured: with
+/// the short rows of the coarse and race models (100-200 points, 7-13
+/// vectors), row by row spent as long closing rows and updating the sums as
+/// on the exponentials. The sums are added row after row as before, so the
+/// results are the same bit for bit.
 ///
 /// # Safety
 /// The CPU must have AVX-512F.
@@ -64,53 +85,39 @@ pub(super) unsafe fn dense_rows<const STATS: bool>(b: &mut F32Buffers, m: usize,
     let F32Buffers { x, ys, pi, row, acc, .. } = b;
     let m8 = pi.len();
     assert!(m8.is_multiple_of(LANES) && ys.iter().all(|v| v.len() == m8) && m <= m8);
-    // The row and the sums are whole wide vectors: masked stores are slow
-    // (measured on Zen 5: a quarter of this kernel's time).
+    // The rows and the sums are whole wide vectors, so only the moving
+    // points' loads need a tail mask (masked stores are slow on AMD).
     let m16 = m8.next_multiple_of(WIDE);
-    row.resize(m16, 0.0);
+    row.resize(BLOCK * m16, 0.0);
     for a in acc.iter_mut() {
         a.clear();
         a.resize(m16, 0.0);
     }
-    let (yx, yy, yz, w) = (ys[0].as_ptr(), ys[1].as_ptr(), ys[2].as_ptr(), pi.as_ptr());
-    let r = row.as_mut_ptr();
-    let [p1, px0, px1, px2] = acc;
-    let (p1, px0, px1, px2) = (p1.as_mut_ptr(), px0.as_mut_ptr(), px1.as_mut_ptr(), px2.as_mut_ptr());
-    let kv = _mm512_set1_ps(k);
+    let rows = Rows {
+        y: [ys[0].as_ptr(), ys[1].as_ptr(), ys[2].as_ptr()],
+        w: pi.as_ptr(),
+        m8,
+        m16,
+        k: _mm512_set1_ps(k),
+        c,
+        row: row.as_mut_ptr(),
+        acc: acc.each_mut().map(|a| a.as_mut_ptr()),
+    };
     let mut log_den = LogSum::default();
-    for (j, xn) in x.iter().enumerate() {
-        let (x0, x1, x2) = (_mm512_set1_ps(xn[0]), _mm512_set1_ps(xn[1]), _mm512_set1_ps(xn[2]));
-        let mut part = _mm512_setzero_ps();
-        for o in (0..m8).step_by(WIDE) {
-            let mk = tail_mask(o, m8);
-            // SAFETY (all loads and stores here): the mask covers only lanes below m8, the
-            // moving points' length; `row` and the sums hold m16.
-            let dx = _mm512_sub_ps(x0, _mm512_maskz_loadu_ps(mk, yx.add(o)));
-            let dy = _mm512_sub_ps(x1, _mm512_maskz_loadu_ps(mk, yy.add(o)));
-            let dz = _mm512_sub_ps(x2, _mm512_maskz_loadu_ps(mk, yz.add(o)));
-            let d2 = _mm512_fmadd_ps(dx, dx, _mm512_fmadd_ps(dy, dy, _mm512_mul_ps(dz, dz)));
-            let v = weighted_exp2_neg_f32x16(_mm512_maskz_loadu_ps(mk, w.add(o)), _mm512_mul_ps(kv, d2));
-            _mm512_storeu_ps(r.add(o), v);
-            part = _mm512_add_ps(part, v);
+    let mut blocks = x.chunks_exact(BLOCK);
+    for (i, block) in blocks.by_ref().enumerate() {
+        // SAFETY: `rows` points into buffers of the lengths it records.
+        let pt1 = unsafe { rows.block::<BLOCK, STATS>(block.try_into().expect("a whole block"), &mut log_den) };
+        if STATS {
+            out.pt1[i * BLOCK..(i + 1) * BLOCK].copy_from_slice(&pt1);
         }
-        let (pt1, inv) = close_row(&fold_to_eight(part), c, &mut log_den);
-        if !STATS {
-            continue;
-        }
-        out.pt1[j] = pt1;
-        let inv32 = inv as f32;
-        let (wi, w0, w1, w2) = (
-            _mm512_set1_ps(inv32),
-            _mm512_set1_ps(xn[0] * inv32),
-            _mm512_set1_ps(xn[1] * inv32),
-            _mm512_set1_ps(xn[2] * inv32),
-        );
-        for o in (0..m8).step_by(WIDE) {
-            let v = _mm512_loadu_ps(r.add(o));
-            _mm512_storeu_ps(p1.add(o), _mm512_fmadd_ps(v, wi, _mm512_loadu_ps(p1.add(o))));
-            _mm512_storeu_ps(px0.add(o), _mm512_fmadd_ps(v, w0, _mm512_loadu_ps(px0.add(o))));
-            _mm512_storeu_ps(px1.add(o), _mm512_fmadd_ps(v, w1, _mm512_loadu_ps(px1.add(o))));
-            _mm512_storeu_ps(px2.add(o), _mm512_fmadd_ps(v, w2, _mm512_loadu_ps(px2.add(o))));
+    }
+    let done = x.len() - blocks.remainder().len();
+    for (i, xn) in blocks.remainder().iter().enumerate() {
+        // SAFETY: as above.
+        let pt1 = unsafe { rows.block::<1, STATS>(&[*xn], &mut log_den) };
+        if STATS {
+            out.pt1[done + i] = pt1[0];
         }
     }
     if STATS {
@@ -123,6 +130,98 @@ pub(super) unsafe fn dense_rows<const STATS: bool>(b: &mut F32Buffers, m: usize,
     out.neg_log_likelihood -= log_den.total();
 }
 
+/// Rows a block of `dense_rows` takes.
+const BLOCK: usize = 4;
+
+/// The buffers of `dense_rows`: the moving points (three columns) and their
+/// weights, `m8` long; `BLOCK` rows of `m16` and the four sums (P1, PX as
+/// three columns), `m16` long.
+struct Rows {
+    y: [*const f32; 3],
+    w: *const f32,
+    m8: usize,
+    m16: usize,
+    k: __m512,
+    c: f64,
+    row: *mut f32,
+    acc: [*mut f32; 4],
+}
+
+impl Rows {
+    /// The rows of the `B` data points `xs`: their totals closed into the
+    /// likelihood (in order), and with `STATS` their shares (returned) and
+    /// their posteriors added to the sums.
+    ///
+    /// # Safety
+    /// The pointers hold the lengths `Rows` records; B ≤ `BLOCK`.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    unsafe fn block<const B: usize, const STATS: bool>(&self, xs: &[[f32; 3]; B], log_den: &mut LogSum) -> [f64; B] {
+        // No closures in here: a closure is its own function, compiled without
+        // this one's target features, and each intrinsic in it becomes a call.
+        let mut xv = [[_mm512_setzero_ps(); 3]; B];
+        for b in 0..B {
+            for i in 0..3 {
+                xv[b][i] = _mm512_set1_ps(xs[b][i]);
+            }
+        }
+        let mut part = [_mm512_setzero_ps(); B];
+        for o in (0..self.m8).step_by(WIDE) {
+            let mk = tail_mask(o, self.m8);
+            // SAFETY (loads and stores here): the mask covers only lanes below m8, the moving
+            // points' length; each row holds m16 from b·m16, and B ≤ BLOCK rows fit.
+            let (y0, y1, y2, w) = unsafe {
+                (
+                    _mm512_maskz_loadu_ps(mk, self.y[0].add(o)),
+                    _mm512_maskz_loadu_ps(mk, self.y[1].add(o)),
+                    _mm512_maskz_loadu_ps(mk, self.y[2].add(o)),
+                    _mm512_maskz_loadu_ps(mk, self.w.add(o)),
+                )
+            };
+            for b in 0..B {
+                let (dx, dy, dz) =
+                    (_mm512_sub_ps(xv[b][0], y0), _mm512_sub_ps(xv[b][1], y1), _mm512_sub_ps(xv[b][2], y2));
+                let d2 = _mm512_fmadd_ps(dx, dx, _mm512_fmadd_ps(dy, dy, _mm512_mul_ps(dz, dz)));
+                let v = weighted_exp2_neg_f32x16(w, _mm512_mul_ps(self.k, d2));
+                unsafe { _mm512_storeu_ps(self.row.add(b * self.m16 + o), v) };
+                part[b] = _mm512_add_ps(part[b], v);
+            }
+        }
+        let mut pt1 = [0.0; B];
+        let mut scale = [[_mm512_setzero_ps(); 4]; B];
+        for b in 0..B {
+            let (share, inv) = close_row(&fold_to_eight(part[b]), self.c, log_den);
+            pt1[b] = share;
+            let inv32 = inv as f32;
+            scale[b] = [
+                _mm512_set1_ps(inv32),
+                _mm512_set1_ps(xs[b][0] * inv32),
+                _mm512_set1_ps(xs[b][1] * inv32),
+                _mm512_set1_ps(xs[b][2] * inv32),
+            ];
+        }
+        if STATS {
+            for o in (0..self.m16).step_by(WIDE) {
+                // SAFETY: the sums and each row hold m16.
+                let mut sums = [_mm512_setzero_ps(); 4];
+                for i in 0..4 {
+                    sums[i] = unsafe { _mm512_loadu_ps(self.acc[i].add(o)) };
+                }
+                for b in 0..B {
+                    let v = unsafe { _mm512_loadu_ps(self.row.add(b * self.m16 + o)) };
+                    for i in 0..4 {
+                        sums[i] = _mm512_fmadd_ps(v, scale[b][i], sums[i]);
+                    }
+                }
+                for i in 0..4 {
+                    unsafe { _mm512_storeu_ps(self.acc[i].add(o), sums[i]) };
+                }
+            }
+        }
+        pt1
+    }
+}
+
 /// `dense_centroids_f32_avx2` on sixteen lanes.
 ///
 /// # Safety
@@ -132,38 +231,92 @@ pub(super) unsafe fn dense_centroids(b: &F32Buffers, x: &[P3], k: f32, c: f64) -
     let F32Buffers { x: x32, ys, pi, .. } = b;
     let m8 = pi.len();
     assert!(m8.is_multiple_of(LANES) && ys.iter().all(|v| v.len() == m8) && x32.len() == x.len());
-    let (yx, yy, yz, w) = (ys[0].as_ptr(), ys[1].as_ptr(), ys[2].as_ptr(), pi.as_ptr());
-    let kv = _mm512_set1_ps(k);
-    let hsum = |v: __m512| fold_to_eight(v).iter().map(|&l| l as f64).sum::<f64>();
-    let (mut mx, mut my, mut np) = ([0.0; 3], [0.0; 3], 0.0);
-    for (xn, x64) in x32.iter().zip(x) {
-        let (x0, x1, x2) = (_mm512_set1_ps(xn[0]), _mm512_set1_ps(xn[1]), _mm512_set1_ps(xn[2]));
-        let (mut part, mut s0, mut s1, mut s2) =
-            (_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps());
-        for o in (0..m8).step_by(WIDE) {
-            let mk = tail_mask(o, m8);
-            // SAFETY (loads): the mask covers only lanes below m8, every buffer's length.
-            let (py0, py1, py2) = (
-                _mm512_maskz_loadu_ps(mk, yx.add(o)),
-                _mm512_maskz_loadu_ps(mk, yy.add(o)),
-                _mm512_maskz_loadu_ps(mk, yz.add(o)),
-            );
-            let (dx, dy, dz) = (_mm512_sub_ps(x0, py0), _mm512_sub_ps(x1, py1), _mm512_sub_ps(x2, py2));
-            let d2 = _mm512_fmadd_ps(dx, dx, _mm512_fmadd_ps(dy, dy, _mm512_mul_ps(dz, dz)));
-            let v = weighted_exp2_neg_f32x16(_mm512_maskz_loadu_ps(mk, w.add(o)), _mm512_mul_ps(kv, d2));
-            part = _mm512_add_ps(part, v);
-            s0 = _mm512_fmadd_ps(v, py0, s0);
-            s1 = _mm512_fmadd_ps(v, py1, s1);
-            s2 = _mm512_fmadd_ps(v, py2, s2);
-        }
-        let sum = hsum(part);
-        let inv = 1.0 / (sum + c);
-        let pt1 = sum * inv;
-        np += pt1;
-        for (d, s) in [s0, s1, s2].into_iter().enumerate() {
-            mx[d] += pt1 * x64[d];
-            my[d] += hsum(s) * inv;
+    let rows =
+        CentroidRows { y: [ys[0].as_ptr(), ys[1].as_ptr(), ys[2].as_ptr()], w: pi.as_ptr(), m8, k: _mm512_set1_ps(k) };
+    let mut sums = [[0.0; 3], [0.0; 3]];
+    let mut np = 0.0;
+    let mut blocks = x32.chunks_exact(BLOCK).zip(x.chunks_exact(BLOCK));
+    for (block, block64) in blocks.by_ref() {
+        // SAFETY: `rows` points into buffers of the lengths it records.
+        let totals = unsafe { rows.block::<BLOCK>(block.try_into().expect("a whole block")) };
+        close_centroid_rows(&totals, block64, c, &mut sums, &mut np);
+    }
+    let done = x.len() - x.len() % BLOCK;
+    for (xn, x64) in x32[done..].iter().zip(&x[done..]) {
+        // SAFETY: as above.
+        let totals = unsafe { rows.block::<1>(&[*xn]) };
+        close_centroid_rows(&totals, std::slice::from_ref(x64), c, &mut sums, &mut np);
+    }
+    let [mx, my] = sums;
+    (mx, my, np)
+}
+
+/// Per data point, its row total and the affinity-weighted sum of the moving
+/// points, closed into Σₙ pt1ₙ xₙ (`sums[0]`), Σₘₙ Pₘₙ yₘ (`sums[1]`) and Np.
+fn close_centroid_rows(totals: &[[f64; 4]], x: &[P3], c: f64, sums: &mut [[f64; 3]; 2], np: &mut f64) {
+    for (t, xn) in totals.iter().zip(x) {
+        let inv = 1.0 / (t[0] + c);
+        let pt1 = t[0] * inv;
+        *np += pt1;
+        for d in 0..3 {
+            sums[0][d] += pt1 * xn[d];
+            sums[1][d] += t[d + 1] * inv;
         }
     }
-    (mx, my, np)
+}
+
+/// The buffers of `dense_centroids`: the moving points and their weights, `m8` long.
+struct CentroidRows {
+    y: [*const f32; 3],
+    w: *const f32,
+    m8: usize,
+    k: __m512,
+}
+
+impl CentroidRows {
+    /// Per data point of `xs`: Σₘ aₘ and Σₘ aₘ yₘ over its affinities aₘ.
+    ///
+    /// # Safety
+    /// The pointers hold the lengths `CentroidRows` records.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    unsafe fn block<const B: usize>(&self, xs: &[[f32; 3]; B]) -> [[f64; 4]; B] {
+        // No closures here (see `Rows::block`).
+        let mut xv = [[_mm512_setzero_ps(); 3]; B];
+        for b in 0..B {
+            for i in 0..3 {
+                xv[b][i] = _mm512_set1_ps(xs[b][i]);
+            }
+        }
+        let mut acc = [[_mm512_setzero_ps(); 4]; B];
+        for o in (0..self.m8).step_by(WIDE) {
+            let mk = tail_mask(o, self.m8);
+            // SAFETY: the mask covers only lanes below m8, every buffer's length.
+            let (y0, y1, y2, w) = unsafe {
+                (
+                    _mm512_maskz_loadu_ps(mk, self.y[0].add(o)),
+                    _mm512_maskz_loadu_ps(mk, self.y[1].add(o)),
+                    _mm512_maskz_loadu_ps(mk, self.y[2].add(o)),
+                    _mm512_maskz_loadu_ps(mk, self.w.add(o)),
+                )
+            };
+            for b in 0..B {
+                let (dx, dy, dz) =
+                    (_mm512_sub_ps(xv[b][0], y0), _mm512_sub_ps(xv[b][1], y1), _mm512_sub_ps(xv[b][2], y2));
+                let d2 = _mm512_fmadd_ps(dx, dx, _mm512_fmadd_ps(dy, dy, _mm512_mul_ps(dz, dz)));
+                let v = weighted_exp2_neg_f32x16(w, _mm512_mul_ps(self.k, d2));
+                acc[b][0] = _mm512_add_ps(acc[b][0], v);
+                acc[b][1] = _mm512_fmadd_ps(v, y0, acc[b][1]);
+                acc[b][2] = _mm512_fmadd_ps(v, y1, acc[b][2]);
+                acc[b][3] = _mm512_fmadd_ps(v, y2, acc[b][3]);
+            }
+        }
+        let mut totals = [[0.0; 4]; B];
+        for b in 0..B {
+            for i in 0..4 {
+                totals[b][i] = lane_sum_f64(acc[b][i]);
+            }
+        }
+        totals
+    }
 }
