@@ -899,63 +899,48 @@ unsafe fn lane_sum(v: std::arch::x86_64::__m256) -> f32 {
     l.iter().sum()
 }
 
-/// `dense_rows_f32` written in AVX2 intrinsics, eight moving points a vector.
-/// By hand because LLVM's loop vectoriser processes 32 points an iteration
-/// and leaves the rest to scalar code (the 100-point coarse model spent a
-/// tenth of its time on its last 4 points), and its SLP vectoriser does not
-/// vectorise the exponential's select when the loop is written per vector.
-/// Same operations in the same order as `dense_rows_f32::<true, STATS>`.
+/// `dense_rows_f32` written in AVX2 intrinsics, eight moving points a vector,
+/// four data points (rows) a block as `avx512::dense_rows` (the reasons are
+/// there). By hand because LLVM's loop vectoriser processes 32 points an
+/// iteration and leaves the rest to scalar code (the 100-point coarse model
+/// spent a tenth of its time on its last 4 points), and its SLP vectoriser
+/// does not vectorise the exponential's select when the loop is written per
+/// vector. Same operations in the same order as `dense_rows_f32::<true, STATS>`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn dense_rows_f32_avx2<const STATS: bool>(b: &mut F32Buffers, m: usize, k: f32, c: f64, out: &mut Posteriors) {
-    use std::arch::x86_64::*;
     let F32Buffers { x, ys, pi, row, acc, .. } = b;
     let m8 = pi.len();
     assert!(m8.is_multiple_of(LANES) && ys.iter().all(|v| v.len() == m8) && m <= m8);
-    row.resize(m8, 0.0);
+    row.resize(ROW_BLOCK * m8, 0.0);
     for a in acc.iter_mut() {
         a.clear();
         a.resize(m8, 0.0);
     }
-    let (yx, yy, yz, w) = (ys[0].as_ptr(), ys[1].as_ptr(), ys[2].as_ptr(), pi.as_ptr());
-    let r = row.as_mut_ptr();
-    let [p1, px0, px1, px2] = acc;
-    let (p1, px0, px1, px2) = (p1.as_mut_ptr(), px0.as_mut_ptr(), px1.as_mut_ptr(), px2.as_mut_ptr());
-    let kv = _mm256_set1_ps(k);
+    let rows = RowsAvx2 {
+        y: [ys[0].as_ptr(), ys[1].as_ptr(), ys[2].as_ptr()],
+        w: pi.as_ptr(),
+        m8,
+        k,
+        c,
+        row: row.as_mut_ptr(),
+        acc: [acc[0].as_mut_ptr(), acc[1].as_mut_ptr(), acc[2].as_mut_ptr(), acc[3].as_mut_ptr()],
+    };
     let mut log_den = LogSum::default();
-    for (j, xn) in x.iter().enumerate() {
-        let (x0, x1, x2) = (_mm256_set1_ps(xn[0]), _mm256_set1_ps(xn[1]), _mm256_set1_ps(xn[2]));
-        let mut part = _mm256_setzero_ps();
-        for o in (0..m8).step_by(LANES) {
-            // SAFETY (all loads and stores here): o + 8 ≤ m8, every buffer's length.
-            let dx = _mm256_sub_ps(x0, _mm256_loadu_ps(yx.add(o)));
-            let dy = _mm256_sub_ps(x1, _mm256_loadu_ps(yy.add(o)));
-            let dz = _mm256_sub_ps(x2, _mm256_loadu_ps(yz.add(o)));
-            let d2 = _mm256_fmadd_ps(dx, dx, _mm256_fmadd_ps(dy, dy, _mm256_mul_ps(dz, dz)));
-            let v = _mm256_mul_ps(_mm256_loadu_ps(w.add(o)), exp2_neg_f32x8(_mm256_mul_ps(kv, d2)));
-            _mm256_storeu_ps(r.add(o), v);
-            part = _mm256_add_ps(part, v);
+    let mut blocks = x.chunks_exact(ROW_BLOCK);
+    for (i, block) in blocks.by_ref().enumerate() {
+        // SAFETY: `rows` points into buffers of the lengths it records.
+        let pt1 = rows.block::<ROW_BLOCK, STATS>(block.try_into().expect("a whole block"), &mut log_den);
+        if STATS {
+            out.pt1[i * ROW_BLOCK..(i + 1) * ROW_BLOCK].copy_from_slice(&pt1);
         }
-        let mut lanes = [0.0f32; LANES];
-        _mm256_storeu_ps(lanes.as_mut_ptr(), part);
-        let (pt1, inv) = close_row(&lanes, c, &mut log_den);
-        if !STATS {
-            continue;
-        }
-        out.pt1[j] = pt1;
-        let inv32 = inv as f32;
-        let (wi, w0, w1, w2) = (
-            _mm256_set1_ps(inv32),
-            _mm256_set1_ps(xn[0] * inv32),
-            _mm256_set1_ps(xn[1] * inv32),
-            _mm256_set1_ps(xn[2] * inv32),
-        );
-        for o in (0..m8).step_by(LANES) {
-            let v = _mm256_loadu_ps(r.add(o));
-            _mm256_storeu_ps(p1.add(o), _mm256_fmadd_ps(v, wi, _mm256_loadu_ps(p1.add(o))));
-            _mm256_storeu_ps(px0.add(o), _mm256_fmadd_ps(v, w0, _mm256_loadu_ps(px0.add(o))));
-            _mm256_storeu_ps(px1.add(o), _mm256_fmadd_ps(v, w1, _mm256_loadu_ps(px1.add(o))));
-            _mm256_storeu_ps(px2.add(o), _mm256_fmadd_ps(v, w2, _mm256_loadu_ps(px2.add(o))));
+    }
+    let done = x.len() - blocks.remainder().len();
+    for (i, xn) in blocks.remainder().iter().enumerate() {
+        // SAFETY: as above.
+        let pt1 = rows.block::<1, STATS>(&[*xn], &mut log_den);
+        if STATS {
+            out.pt1[done + i] = pt1[0];
         }
     }
     if STATS {
@@ -968,49 +953,201 @@ unsafe fn dense_rows_f32_avx2<const STATS: bool>(b: &mut F32Buffers, m: usize, k
     out.neg_log_likelihood -= log_den.total();
 }
 
+/// Data points a block of the dense kernels takes.
+const ROW_BLOCK: usize = 4;
+
+/// The buffers of `dense_rows_f32_avx2`: the moving points (three columns)
+/// and their weights, `ROW_BLOCK` rows and the four sums (P1, PX as three
+/// columns), each `m8` long.
+#[cfg(target_arch = "x86_64")]
+struct RowsAvx2 {
+    y: [*const f32; 3],
+    w: *const f32,
+    m8: usize,
+    k: f32,
+    c: f64,
+    row: *mut f32,
+    acc: [*mut f32; 4],
+}
+
+#[cfg(target_arch = "x86_64")]
+impl RowsAvx2 {
+    /// As `avx512::Rows::block`, on eight lanes.
+    ///
+    /// # Safety
+    /// The pointers hold the lengths `RowsAvx2` records; B ≤ `ROW_BLOCK`; the
+    /// CPU has AVX2 and FMA.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    unsafe fn block<const B: usize, const STATS: bool>(&self, xs: &[[f32; 3]; B], log_den: &mut LogSum) -> [f64; B] {
+        use std::arch::x86_64::*;
+        // No closures in here: a closure is compiled without this function's
+        // target features, and each intrinsic in it becomes a call.
+        let mut xv = [[_mm256_setzero_ps(); 3]; B];
+        for b in 0..B {
+            for i in 0..3 {
+                xv[b][i] = _mm256_set1_ps(xs[b][i]);
+            }
+        }
+        let kv = _mm256_set1_ps(self.k);
+        let mut part = [_mm256_setzero_ps(); B];
+        for o in (0..self.m8).step_by(LANES) {
+            // SAFETY (loads and stores here): o + 8 ≤ m8; each row holds m8 from b·m8.
+            let (y0, y1, y2, w) = (
+                _mm256_loadu_ps(self.y[0].add(o)),
+                _mm256_loadu_ps(self.y[1].add(o)),
+                _mm256_loadu_ps(self.y[2].add(o)),
+                _mm256_loadu_ps(self.w.add(o)),
+            );
+            for b in 0..B {
+                let (dx, dy, dz) =
+                    (_mm256_sub_ps(xv[b][0], y0), _mm256_sub_ps(xv[b][1], y1), _mm256_sub_ps(xv[b][2], y2));
+                let d2 = _mm256_fmadd_ps(dx, dx, _mm256_fmadd_ps(dy, dy, _mm256_mul_ps(dz, dz)));
+                let v = _mm256_mul_ps(w, exp2_neg_f32x8(_mm256_mul_ps(kv, d2)));
+                _mm256_storeu_ps(self.row.add(b * self.m8 + o), v);
+                part[b] = _mm256_add_ps(part[b], v);
+            }
+        }
+        let mut pt1 = [0.0; B];
+        let mut scale = [[_mm256_setzero_ps(); 4]; B];
+        for b in 0..B {
+            let mut lanes = [0.0f32; LANES];
+            _mm256_storeu_ps(lanes.as_mut_ptr(), part[b]);
+            let (share, inv) = close_row(&lanes, self.c, log_den);
+            pt1[b] = share;
+            let inv32 = inv as f32;
+            scale[b] = [
+                _mm256_set1_ps(inv32),
+                _mm256_set1_ps(xs[b][0] * inv32),
+                _mm256_set1_ps(xs[b][1] * inv32),
+                _mm256_set1_ps(xs[b][2] * inv32),
+            ];
+        }
+        if STATS {
+            for o in (0..self.m8).step_by(LANES) {
+                // SAFETY: the sums and each row hold m8.
+                let mut sums = [_mm256_setzero_ps(); 4];
+                for i in 0..4 {
+                    sums[i] = _mm256_loadu_ps(self.acc[i].add(o));
+                }
+                for b in 0..B {
+                    let v = _mm256_loadu_ps(self.row.add(b * self.m8 + o));
+                    for i in 0..4 {
+                        sums[i] = _mm256_fmadd_ps(v, scale[b][i], sums[i]);
+                    }
+                }
+                for i in 0..4 {
+                    _mm256_storeu_ps(self.acc[i].add(o), sums[i]);
+                }
+            }
+        }
+        pt1
+    }
+}
+
 /// `EStep::centroid_shift`'s sums over the dense pairs in AVX2: per data
 /// row its total and the affinity-weighted sum of the moving points, closed
-/// into Σₙ pt1ₙ xₙ (with `x`, the data in double precision), Σₘₙ Pₘₙ yₘ and Np.
+/// into Σₙ pt1ₙ xₙ (with `x`, the data in double precision), Σₘₙ Pₘₙ yₘ and
+/// Np; four data points a block (see `avx512::dense_centroids`).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn dense_centroids_f32_avx2(b: &F32Buffers, x: &[P3], k: f32, c: f64) -> ([f64; 3], [f64; 3], f64) {
-    use std::arch::x86_64::*;
     let F32Buffers { x: x32, ys, pi, .. } = b;
     let m8 = pi.len();
     assert!(m8.is_multiple_of(LANES) && ys.iter().all(|v| v.len() == m8) && x32.len() == x.len());
-    let (yx, yy, yz, w) = (ys[0].as_ptr(), ys[1].as_ptr(), ys[2].as_ptr(), pi.as_ptr());
-    let kv = _mm256_set1_ps(k);
-    let hsum = |v: __m256| {
-        let mut lanes = [0.0f32; LANES];
-        _mm256_storeu_ps(lanes.as_mut_ptr(), v);
-        lanes.iter().map(|&l| l as f64).sum::<f64>()
-    };
-    let (mut mx, mut my, mut np) = ([0.0; 3], [0.0; 3], 0.0);
-    for (xn, x64) in x32.iter().zip(x) {
-        let (x0, x1, x2) = (_mm256_set1_ps(xn[0]), _mm256_set1_ps(xn[1]), _mm256_set1_ps(xn[2]));
-        let (mut part, mut s0, mut s1, mut s2) =
-            (_mm256_setzero_ps(), _mm256_setzero_ps(), _mm256_setzero_ps(), _mm256_setzero_ps());
-        for o in (0..m8).step_by(LANES) {
-            // SAFETY (loads): o + 8 ≤ m8, every buffer's length.
-            let (py0, py1, py2) = (_mm256_loadu_ps(yx.add(o)), _mm256_loadu_ps(yy.add(o)), _mm256_loadu_ps(yz.add(o)));
-            let (dx, dy, dz) = (_mm256_sub_ps(x0, py0), _mm256_sub_ps(x1, py1), _mm256_sub_ps(x2, py2));
-            let d2 = _mm256_fmadd_ps(dx, dx, _mm256_fmadd_ps(dy, dy, _mm256_mul_ps(dz, dz)));
-            let v = _mm256_mul_ps(_mm256_loadu_ps(w.add(o)), exp2_neg_f32x8(_mm256_mul_ps(kv, d2)));
-            part = _mm256_add_ps(part, v);
-            s0 = _mm256_fmadd_ps(v, py0, s0);
-            s1 = _mm256_fmadd_ps(v, py1, s1);
-            s2 = _mm256_fmadd_ps(v, py2, s2);
-        }
-        let sum = hsum(part);
-        let inv = 1.0 / (sum + c);
-        let pt1 = sum * inv;
-        np += pt1;
-        for (d, s) in [s0, s1, s2].into_iter().enumerate() {
-            mx[d] += pt1 * x64[d];
-            my[d] += hsum(s) * inv;
+    let rows = CentroidRowsAvx2 { y: [ys[0].as_ptr(), ys[1].as_ptr(), ys[2].as_ptr()], w: pi.as_ptr(), m8, k };
+    let mut sums = [[0.0; 3], [0.0; 3]];
+    let mut np = 0.0;
+    for (block, block64) in x32.chunks_exact(ROW_BLOCK).zip(x.chunks_exact(ROW_BLOCK)) {
+        // SAFETY: `rows` points into buffers of the lengths it records.
+        let totals = rows.block::<ROW_BLOCK>(block.try_into().expect("a whole block"));
+        close_centroid_rows(&totals, block64, c, &mut sums, &mut np);
+    }
+    let done = x.len() - x.len() % ROW_BLOCK;
+    for (xn, x64) in x32[done..].iter().zip(&x[done..]) {
+        // SAFETY: as above.
+        let totals = rows.block::<1>(&[*xn]);
+        close_centroid_rows(&totals, std::slice::from_ref(x64), c, &mut sums, &mut np);
+    }
+    let [mx, my] = sums;
+    (mx, my, np)
+}
+
+/// Per data point, its row total and the affinity-weighted sum of the moving
+/// points, closed into Σₙ pt1ₙ xₙ (`sums[0]`), Σₘₙ Pₘₙ yₘ (`sums[1]`) and Np.
+fn close_centroid_rows(totals: &[[f64; 4]], x: &[P3], c: f64, sums: &mut [[f64; 3]; 2], np: &mut f64) {
+    for (t, xn) in totals.iter().zip(x) {
+        let inv = 1.0 / (t[0] + c);
+        let pt1 = t[0] * inv;
+        *np += pt1;
+        for d in 0..3 {
+            sums[0][d] += pt1 * xn[d];
+            sums[1][d] += t[d + 1] * inv;
         }
     }
-    (mx, my, np)
+}
+
+/// The buffers of `dense_centroids_f32_avx2`: the moving points and their weights, `m8` long.
+#[cfg(target_arch = "x86_64")]
+struct CentroidRowsAvx2 {
+    y: [*const f32; 3],
+    w: *const f32,
+    m8: usize,
+    k: f32,
+}
+
+#[cfg(target_arch = "x86_64")]
+impl CentroidRowsAvx2 {
+    /// Per data point of `xs`: Σₘ aₘ and Σₘ aₘ yₘ over its affinities aₘ.
+    ///
+    /// # Safety
+    /// The pointers hold the lengths `CentroidRowsAvx2` records; the CPU has AVX2 and FMA.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    unsafe fn block<const B: usize>(&self, xs: &[[f32; 3]; B]) -> [[f64; 4]; B] {
+        use std::arch::x86_64::*;
+        // No closures here (see `RowsAvx2::block`).
+        let mut xv = [[_mm256_setzero_ps(); 3]; B];
+        for b in 0..B {
+            for i in 0..3 {
+                xv[b][i] = _mm256_set1_ps(xs[b][i]);
+            }
+        }
+        let kv = _mm256_set1_ps(self.k);
+        let mut acc = [[_mm256_setzero_ps(); 4]; B];
+        for o in (0..self.m8).step_by(LANES) {
+            // SAFETY: o + 8 ≤ m8, every buffer's length.
+            let (y0, y1, y2, w) = (
+                _mm256_loadu_ps(self.y[0].add(o)),
+                _mm256_loadu_ps(self.y[1].add(o)),
+                _mm256_loadu_ps(self.y[2].add(o)),
+                _mm256_loadu_ps(self.w.add(o)),
+            );
+            for b in 0..B {
+                let (dx, dy, dz) =
+                    (_mm256_sub_ps(xv[b][0], y0), _mm256_sub_ps(xv[b][1], y1), _mm256_sub_ps(xv[b][2], y2));
+                let d2 = _mm256_fmadd_ps(dx, dx, _mm256_fmadd_ps(dy, dy, _mm256_mul_ps(dz, dz)));
+                let v = _mm256_mul_ps(w, exp2_neg_f32x8(_mm256_mul_ps(kv, d2)));
+                acc[b][0] = _mm256_add_ps(acc[b][0], v);
+                acc[b][1] = _mm256_fmadd_ps(v, y0, acc[b][1]);
+                acc[b][2] = _mm256_fmadd_ps(v, y1, acc[b][2]);
+                acc[b][3] = _mm256_fmadd_ps(v, y2, acc[b][3]);
+            }
+        }
+        let mut totals = [[0.0; 4]; B];
+        for b in 0..B {
+            for i in 0..4 {
+                let mut lanes = [0.0f32; LANES];
+                _mm256_storeu_ps(lanes.as_mut_ptr(), acc[b][i]);
+                let mut sum = 0.0;
+                for l in lanes {
+                    sum += l as f64;
+                }
+                totals[b][i] = sum;
+            }
+        }
+        totals
+    }
 }
 
 /// `exp2_neg_f32::<true>` on eight lanes.

@@ -15,7 +15,7 @@
 
 use std::arch::x86_64::*;
 
-use super::{close_row, F32Buffers, LogSum, Posteriors, LANES, P3};
+use super::{close_centroid_rows, close_row, F32Buffers, LogSum, Posteriors, LANES, P3, ROW_BLOCK as BLOCK};
 use crate::shape::fastexp::{EXP2_CUT_F32, EXP2_SERIES_F32};
 
 const WIDE: usize = 16;
@@ -129,9 +129,6 @@ pub(super) unsafe fn dense_rows<const STATS: bool>(b: &mut F32Buffers, m: usize,
     }
     out.neg_log_likelihood -= log_den.total();
 }
-
-/// Rows a block of `dense_rows` takes.
-const BLOCK: usize = 4;
 
 /// The buffers of `dense_rows`: the moving points (three columns) and their
 /// weights, `m8` long; `BLOCK` rows of `m16` and the four sums (P1, PX as
@@ -249,20 +246,6 @@ pub(super) unsafe fn dense_centroids(b: &F32Buffers, x: &[P3], k: f32, c: f64) -
     }
     let [mx, my] = sums;
     (mx, my, np)
-}
-
-/// Per data point, its row total and the affinity-weighted sum of the moving
-/// points, closed into Σₙ pt1ₙ xₙ (`sums[0]`), Σₘₙ Pₘₙ yₘ (`sums[1]`) and Np.
-fn close_centroid_rows(totals: &[[f64; 4]], x: &[P3], c: f64, sums: &mut [[f64; 3]; 2], np: &mut f64) {
-    for (t, xn) in totals.iter().zip(x) {
-        let inv = 1.0 / (t[0] + c);
-        let pt1 = t[0] * inv;
-        *np += pt1;
-        for d in 0..3 {
-            sums[0][d] += pt1 * xn[d];
-            sums[1][d] += t[d + 1] * inv;
-        }
-    }
 }
 
 /// The buffers of `dense_centroids`: the moving points and their weights, `m8` long.
