@@ -736,10 +736,7 @@ fn dense_rows_f32<const FMA: bool, const STATS: bool>(
         }
     }
     if STATS {
-        for i in 0..m {
-            out.p1[i] = p1[i] as f64;
-            out.px[i] = [px0[i] as f64, px1[i] as f64, px2[i] as f64];
-        }
+        store_posterior_sums(acc, m, out);
     }
     out.neg_log_likelihood -= log_den.total();
 }
@@ -918,10 +915,7 @@ unsafe fn dense_rows_f32_avx2<const STATS: bool>(b: &mut F32Buffers, m: usize, k
         a.resize(m8, 0.0);
     }
     let rows = RowsAvx2 {
-        y: [ys[0].as_ptr(), ys[1].as_ptr(), ys[2].as_ptr()],
-        w: pi.as_ptr(),
-        m8,
-        k,
+        moving: MovingAvx2::new(ys, pi, k),
         c,
         row: row.as_mut_ptr(),
         acc: [acc[0].as_mut_ptr(), acc[1].as_mut_ptr(), acc[2].as_mut_ptr(), acc[3].as_mut_ptr()],
@@ -944,27 +938,143 @@ unsafe fn dense_rows_f32_avx2<const STATS: bool>(b: &mut F32Buffers, m: usize, k
         }
     }
     if STATS {
-        let [p1, px0, px1, px2] = acc;
-        for i in 0..m {
-            out.p1[i] = p1[i] as f64;
-            out.px[i] = [px0[i] as f64, px1[i] as f64, px2[i] as f64];
-        }
+        store_posterior_sums(acc, m, out);
     }
     out.neg_log_likelihood -= log_den.total();
+}
+
+/// The single-precision posterior sums (P1, PX as three columns) of the
+/// first `m` moving points into `out`.
+fn store_posterior_sums(acc: &[Vec<f32>; 4], m: usize, out: &mut Posteriors) {
+    let [p1, px0, px1, px2] = acc;
+    for i in 0..m {
+        out.p1[i] = p1[i] as f64;
+        out.px[i] = [px0[i] as f64, px1[i] as f64, px2[i] as f64];
+    }
 }
 
 /// Data points a block of the dense kernels takes.
 const ROW_BLOCK: usize = 4;
 
-/// The buffers of `dense_rows_f32_avx2`: the moving points (three columns)
-/// and their weights, `ROW_BLOCK` rows and the four sums (P1, PX as three
-/// columns), each `m8` long.
+/// The moving points (three columns) and their weights, `m8` long, with the
+/// exponent's factor k: what every dense AVX2 kernel reads.
 #[cfg(target_arch = "x86_64")]
-struct RowsAvx2 {
+struct MovingAvx2 {
     y: [*const f32; 3],
     w: *const f32,
     m8: usize,
-    k: f32,
+    k: std::arch::x86_64::__m256,
+}
+
+#[cfg(target_arch = "x86_64")]
+impl MovingAvx2 {
+    /// # Safety
+    /// The CPU has AVX.
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn new(ys: &[Vec<f32>; 3], pi: &[f32], k: f32) -> Self {
+        let m8 = pi.len();
+        Self {
+            y: [ys[0].as_ptr(), ys[1].as_ptr(), ys[2].as_ptr()],
+            w: pi.as_ptr(),
+            m8,
+            k: std::arch::x86_64::_mm256_set1_ps(k),
+        }
+    }
+
+    /// The moving points' three coordinates and their weights at `o`.
+    ///
+    /// # Safety
+    /// o + 8 ≤ m8; the CPU has AVX2.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    unsafe fn at(&self, o: usize) -> [std::arch::x86_64::__m256; 4] {
+        use std::arch::x86_64::*;
+        [
+            _mm256_loadu_ps(self.y[0].add(o)),
+            _mm256_loadu_ps(self.y[1].add(o)),
+            _mm256_loadu_ps(self.y[2].add(o)),
+            _mm256_loadu_ps(self.w.add(o)),
+        ]
+    }
+
+    /// w·2^{k·|x − y|²} for the broadcast data point `x` and the moving points `yw` (from `at`).
+    ///
+    /// # Safety
+    /// The CPU has AVX2 and FMA.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    unsafe fn affinity(
+        &self,
+        x: &[std::arch::x86_64::__m256; 3],
+        yw: &[std::arch::x86_64::__m256; 4],
+    ) -> std::arch::x86_64::__m256 {
+        use std::arch::x86_64::*;
+        let (dx, dy, dz) = (_mm256_sub_ps(x[0], yw[0]), _mm256_sub_ps(x[1], yw[1]), _mm256_sub_ps(x[2], yw[2]));
+        let d2 = _mm256_fmadd_ps(dx, dx, _mm256_fmadd_ps(dy, dy, _mm256_mul_ps(dz, dz)));
+        _mm256_mul_ps(yw[3], exp2_neg_f32x8(_mm256_mul_ps(self.k, d2)))
+    }
+
+    /// Per data point of `xs`: Σₘ aₘ and Σₘ aₘ yₘ over its affinities aₘ
+    /// (`dense_centroids_f32_avx2`'s block).
+    ///
+    /// # Safety
+    /// The pointers hold the lengths `MovingAvx2` records; the CPU has AVX2 and FMA.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    unsafe fn centroid_block<const B: usize>(&self, xs: &[[f32; 3]; B]) -> [[f64; 4]; B] {
+        use std::arch::x86_64::*;
+        // No closures here (see `RowsAvx2::block`).
+        let xv = broadcast_avx2(xs);
+        let mut acc = [[_mm256_setzero_ps(); 4]; B];
+        for o in (0..self.m8).step_by(LANES) {
+            let yw = self.at(o);
+            for b in 0..B {
+                let v = self.affinity(&xv[b], &yw);
+                acc[b][0] = _mm256_add_ps(acc[b][0], v);
+                acc[b][1] = _mm256_fmadd_ps(v, yw[0], acc[b][1]);
+                acc[b][2] = _mm256_fmadd_ps(v, yw[1], acc[b][2]);
+                acc[b][3] = _mm256_fmadd_ps(v, yw[2], acc[b][3]);
+            }
+        }
+        let mut totals = [[0.0; 4]; B];
+        for b in 0..B {
+            for i in 0..4 {
+                let mut lanes = [0.0f32; LANES];
+                _mm256_storeu_ps(lanes.as_mut_ptr(), acc[b][i]);
+                let mut sum = 0.0;
+                for l in lanes {
+                    sum += l as f64;
+                }
+                totals[b][i] = sum;
+            }
+        }
+        totals
+    }
+}
+
+/// The `B` data points `xs`, each coordinate on every lane.
+///
+/// # Safety
+/// The CPU has AVX.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn broadcast_avx2<const B: usize>(xs: &[[f32; 3]; B]) -> [[std::arch::x86_64::__m256; 3]; B] {
+    use std::arch::x86_64::*;
+    let mut xv = [[_mm256_setzero_ps(); 3]; B];
+    for b in 0..B {
+        for i in 0..3 {
+            xv[b][i] = _mm256_set1_ps(xs[b][i]);
+        }
+    }
+    xv
+}
+
+/// `dense_rows_f32_avx2`'s buffers: the moving points, and `ROW_BLOCK` rows
+/// and the four sums (P1, PX as three columns), each `m8` long.
+#[cfg(target_arch = "x86_64")]
+struct RowsAvx2 {
+    moving: MovingAvx2,
     c: f64,
     row: *mut f32,
     acc: [*mut f32; 4],
@@ -983,28 +1093,15 @@ impl RowsAvx2 {
         use std::arch::x86_64::*;
         // No closures in here: a closure is compiled without this function's
         // target features, and each intrinsic in it becomes a call.
-        let mut xv = [[_mm256_setzero_ps(); 3]; B];
-        for b in 0..B {
-            for i in 0..3 {
-                xv[b][i] = _mm256_set1_ps(xs[b][i]);
-            }
-        }
-        let kv = _mm256_set1_ps(self.k);
+        let m8 = self.moving.m8;
+        let xv = broadcast_avx2(xs);
         let mut part = [_mm256_setzero_ps(); B];
-        for o in (0..self.m8).step_by(LANES) {
+        for o in (0..m8).step_by(LANES) {
             // SAFETY (loads and stores here): o + 8 ≤ m8; each row holds m8 from b·m8.
-            let (y0, y1, y2, w) = (
-                _mm256_loadu_ps(self.y[0].add(o)),
-                _mm256_loadu_ps(self.y[1].add(o)),
-                _mm256_loadu_ps(self.y[2].add(o)),
-                _mm256_loadu_ps(self.w.add(o)),
-            );
+            let yw = self.moving.at(o);
             for b in 0..B {
-                let (dx, dy, dz) =
-                    (_mm256_sub_ps(xv[b][0], y0), _mm256_sub_ps(xv[b][1], y1), _mm256_sub_ps(xv[b][2], y2));
-                let d2 = _mm256_fmadd_ps(dx, dx, _mm256_fmadd_ps(dy, dy, _mm256_mul_ps(dz, dz)));
-                let v = _mm256_mul_ps(w, exp2_neg_f32x8(_mm256_mul_ps(kv, d2)));
-                _mm256_storeu_ps(self.row.add(b * self.m8 + o), v);
+                let v = self.moving.affinity(&xv[b], &yw);
+                _mm256_storeu_ps(self.row.add(b * m8 + o), v);
                 part[b] = _mm256_add_ps(part[b], v);
             }
         }
@@ -1024,14 +1121,14 @@ impl RowsAvx2 {
             ];
         }
         if STATS {
-            for o in (0..self.m8).step_by(LANES) {
+            for o in (0..m8).step_by(LANES) {
                 // SAFETY: the sums and each row hold m8.
                 let mut sums = [_mm256_setzero_ps(); 4];
                 for i in 0..4 {
                     sums[i] = _mm256_loadu_ps(self.acc[i].add(o));
                 }
                 for b in 0..B {
-                    let v = _mm256_loadu_ps(self.row.add(b * self.m8 + o));
+                    let v = _mm256_loadu_ps(self.row.add(b * m8 + o));
                     for i in 0..4 {
                         sums[i] = _mm256_fmadd_ps(v, scale[b][i], sums[i]);
                     }
@@ -1055,18 +1152,18 @@ unsafe fn dense_centroids_f32_avx2(b: &F32Buffers, x: &[P3], k: f32, c: f64) -> 
     let F32Buffers { x: x32, ys, pi, .. } = b;
     let m8 = pi.len();
     assert!(m8.is_multiple_of(LANES) && ys.iter().all(|v| v.len() == m8) && x32.len() == x.len());
-    let rows = CentroidRowsAvx2 { y: [ys[0].as_ptr(), ys[1].as_ptr(), ys[2].as_ptr()], w: pi.as_ptr(), m8, k };
+    let moving = MovingAvx2::new(ys, pi, k);
     let mut sums = [[0.0; 3], [0.0; 3]];
     let mut np = 0.0;
     for (block, block64) in x32.chunks_exact(ROW_BLOCK).zip(x.chunks_exact(ROW_BLOCK)) {
-        // SAFETY: `rows` points into buffers of the lengths it records.
-        let totals = rows.block::<ROW_BLOCK>(block.try_into().expect("a whole block"));
+        // SAFETY: `moving` points into buffers of the lengths it records.
+        let totals = moving.centroid_block::<ROW_BLOCK>(block.try_into().expect("a whole block"));
         close_centroid_rows(&totals, block64, c, &mut sums, &mut np);
     }
     let done = x.len() - x.len() % ROW_BLOCK;
     for (xn, x64) in x32[done..].iter().zip(&x[done..]) {
         // SAFETY: as above.
-        let totals = rows.block::<1>(&[*xn]);
+        let totals = moving.centroid_block::<1>(&[*xn]);
         close_centroid_rows(&totals, std::slice::from_ref(x64), c, &mut sums, &mut np);
     }
     let [mx, my] = sums;
@@ -1084,69 +1181,6 @@ fn close_centroid_rows(totals: &[[f64; 4]], x: &[P3], c: f64, sums: &mut [[f64; 
             sums[0][d] += pt1 * xn[d];
             sums[1][d] += t[d + 1] * inv;
         }
-    }
-}
-
-/// The buffers of `dense_centroids_f32_avx2`: the moving points and their weights, `m8` long.
-#[cfg(target_arch = "x86_64")]
-struct CentroidRowsAvx2 {
-    y: [*const f32; 3],
-    w: *const f32,
-    m8: usize,
-    k: f32,
-}
-
-#[cfg(target_arch = "x86_64")]
-impl CentroidRowsAvx2 {
-    /// Per data point of `xs`: Σₘ aₘ and Σₘ aₘ yₘ over its affinities aₘ.
-    ///
-    /// # Safety
-    /// The pointers hold the lengths `CentroidRowsAvx2` records; the CPU has AVX2 and FMA.
-    #[target_feature(enable = "avx2,fma")]
-    #[inline]
-    unsafe fn block<const B: usize>(&self, xs: &[[f32; 3]; B]) -> [[f64; 4]; B] {
-        use std::arch::x86_64::*;
-        // No closures here (see `RowsAvx2::block`).
-        let mut xv = [[_mm256_setzero_ps(); 3]; B];
-        for b in 0..B {
-            for i in 0..3 {
-                xv[b][i] = _mm256_set1_ps(xs[b][i]);
-            }
-        }
-        let kv = _mm256_set1_ps(self.k);
-        let mut acc = [[_mm256_setzero_ps(); 4]; B];
-        for o in (0..self.m8).step_by(LANES) {
-            // SAFETY: o + 8 ≤ m8, every buffer's length.
-            let (y0, y1, y2, w) = (
-                _mm256_loadu_ps(self.y[0].add(o)),
-                _mm256_loadu_ps(self.y[1].add(o)),
-                _mm256_loadu_ps(self.y[2].add(o)),
-                _mm256_loadu_ps(self.w.add(o)),
-            );
-            for b in 0..B {
-                let (dx, dy, dz) =
-                    (_mm256_sub_ps(xv[b][0], y0), _mm256_sub_ps(xv[b][1], y1), _mm256_sub_ps(xv[b][2], y2));
-                let d2 = _mm256_fmadd_ps(dx, dx, _mm256_fmadd_ps(dy, dy, _mm256_mul_ps(dz, dz)));
-                let v = _mm256_mul_ps(w, exp2_neg_f32x8(_mm256_mul_ps(kv, d2)));
-                acc[b][0] = _mm256_add_ps(acc[b][0], v);
-                acc[b][1] = _mm256_fmadd_ps(v, y0, acc[b][1]);
-                acc[b][2] = _mm256_fmadd_ps(v, y1, acc[b][2]);
-                acc[b][3] = _mm256_fmadd_ps(v, y2, acc[b][3]);
-            }
-        }
-        let mut totals = [[0.0; 4]; B];
-        for b in 0..B {
-            for i in 0..4 {
-                let mut lanes = [0.0f32; LANES];
-                _mm256_storeu_ps(lanes.as_mut_ptr(), acc[b][i]);
-                let mut sum = 0.0;
-                for l in lanes {
-                    sum += l as f64;
-                }
-                totals[b][i] = sum;
-            }
-        }
-        totals
     }
 }
 

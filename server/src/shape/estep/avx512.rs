@@ -15,7 +15,9 @@
 
 use std::arch::x86_64::*;
 
-use super::{close_centroid_rows, close_row, F32Buffers, LogSum, Posteriors, LANES, P3, ROW_BLOCK as BLOCK};
+use super::{
+    close_centroid_rows, close_row, store_posterior_sums, F32Buffers, LogSum, Posteriors, LANES, P3, ROW_BLOCK as BLOCK,
+};
 use crate::shape::fastexp::{EXP2_CUT_F32, EXP2_SERIES_F32};
 
 const WIDE: usize = 16;
@@ -94,11 +96,8 @@ pub(super) unsafe fn dense_rows<const STATS: bool>(b: &mut F32Buffers, m: usize,
         a.resize(m16, 0.0);
     }
     let rows = Rows {
-        y: [ys[0].as_ptr(), ys[1].as_ptr(), ys[2].as_ptr()],
-        w: pi.as_ptr(),
-        m8,
+        moving: Moving::new(ys, pi, k),
         m16,
-        k: _mm512_set1_ps(k),
         c,
         row: row.as_mut_ptr(),
         acc: acc.each_mut().map(|a| a.as_mut_ptr()),
@@ -121,24 +120,104 @@ pub(super) unsafe fn dense_rows<const STATS: bool>(b: &mut F32Buffers, m: usize,
         }
     }
     if STATS {
-        let [p1, px0, px1, px2] = acc;
-        for i in 0..m {
-            out.p1[i] = p1[i] as f64;
-            out.px[i] = [px0[i] as f64, px1[i] as f64, px2[i] as f64];
-        }
+        store_posterior_sums(acc, m, out);
     }
     out.neg_log_likelihood -= log_den.total();
 }
 
-/// The buffers of `dense_rows`: the moving points (three columns) and their
-/// weights, `m8` long; `BLOCK` rows of `m16` and the four sums (P1, PX as
-/// three columns), `m16` long.
-struct Rows {
+/// The moving points (three columns) and their weights, `m8` long, with the
+/// exponent's factor k: what every dense AVX-512 kernel reads.
+struct Moving {
     y: [*const f32; 3],
     w: *const f32,
     m8: usize,
-    m16: usize,
     k: __m512,
+}
+
+impl Moving {
+    #[target_feature(enable = "avx512f")]
+    fn new(ys: &[Vec<f32>; 3], pi: &[f32], k: f32) -> Self {
+        Self { y: [ys[0].as_ptr(), ys[1].as_ptr(), ys[2].as_ptr()], w: pi.as_ptr(), m8: pi.len(), k: _mm512_set1_ps(k) }
+    }
+
+    /// The moving points' three coordinates and their weights at `o`, zero past m8.
+    ///
+    /// # Safety
+    /// o < m8 and m8 a multiple of 8 (the mask covers only lanes below m8).
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    unsafe fn at(&self, o: usize) -> [__m512; 4] {
+        let mk = tail_mask(o, self.m8);
+        // SAFETY: the mask covers only lanes below m8, every buffer's length.
+        unsafe {
+            [
+                _mm512_maskz_loadu_ps(mk, self.y[0].add(o)),
+                _mm512_maskz_loadu_ps(mk, self.y[1].add(o)),
+                _mm512_maskz_loadu_ps(mk, self.y[2].add(o)),
+                _mm512_maskz_loadu_ps(mk, self.w.add(o)),
+            ]
+        }
+    }
+
+    /// w·2^{k·|x − y|²} for the broadcast data point `x` and the moving points `yw` (from `at`).
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn affinity(&self, x: &[__m512; 3], yw: &[__m512; 4]) -> __m512 {
+        let (dx, dy, dz) = (_mm512_sub_ps(x[0], yw[0]), _mm512_sub_ps(x[1], yw[1]), _mm512_sub_ps(x[2], yw[2]));
+        let d2 = _mm512_fmadd_ps(dx, dx, _mm512_fmadd_ps(dy, dy, _mm512_mul_ps(dz, dz)));
+        weighted_exp2_neg_f32x16(yw[3], _mm512_mul_ps(self.k, d2))
+    }
+
+    /// Per data point of `xs`: Σₘ aₘ and Σₘ aₘ yₘ over its affinities aₘ
+    /// (`dense_centroids`'s block).
+    ///
+    /// # Safety
+    /// The pointers hold the lengths `Moving` records.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    unsafe fn centroid_block<const B: usize>(&self, xs: &[[f32; 3]; B]) -> [[f64; 4]; B] {
+        // No closures here (see `Rows::block`).
+        let xv = broadcast(xs);
+        let mut acc = [[_mm512_setzero_ps(); 4]; B];
+        for o in (0..self.m8).step_by(WIDE) {
+            // SAFETY: o < m8.
+            let yw = unsafe { self.at(o) };
+            for b in 0..B {
+                let v = self.affinity(&xv[b], &yw);
+                acc[b][0] = _mm512_add_ps(acc[b][0], v);
+                acc[b][1] = _mm512_fmadd_ps(v, yw[0], acc[b][1]);
+                acc[b][2] = _mm512_fmadd_ps(v, yw[1], acc[b][2]);
+                acc[b][3] = _mm512_fmadd_ps(v, yw[2], acc[b][3]);
+            }
+        }
+        let mut totals = [[0.0; 4]; B];
+        for b in 0..B {
+            for i in 0..4 {
+                totals[b][i] = lane_sum_f64(acc[b][i]);
+            }
+        }
+        totals
+    }
+}
+
+/// The `B` data points `xs`, each coordinate on every lane.
+#[target_feature(enable = "avx512f")]
+#[inline]
+fn broadcast<const B: usize>(xs: &[[f32; 3]; B]) -> [[__m512; 3]; B] {
+    let mut xv = [[_mm512_setzero_ps(); 3]; B];
+    for b in 0..B {
+        for i in 0..3 {
+            xv[b][i] = _mm512_set1_ps(xs[b][i]);
+        }
+    }
+    xv
+}
+
+/// `dense_rows`' buffers: the moving points, `BLOCK` rows of `m16` and the
+/// four sums (P1, PX as three columns), `m16` long.
+struct Rows {
+    moving: Moving,
+    m16: usize,
     c: f64,
     row: *mut f32,
     acc: [*mut f32; 4],
@@ -156,30 +235,13 @@ impl Rows {
     unsafe fn block<const B: usize, const STATS: bool>(&self, xs: &[[f32; 3]; B], log_den: &mut LogSum) -> [f64; B] {
         // No closures in here: a closure is its own function, compiled without
         // this one's target features, and each intrinsic in it becomes a call.
-        let mut xv = [[_mm512_setzero_ps(); 3]; B];
-        for b in 0..B {
-            for i in 0..3 {
-                xv[b][i] = _mm512_set1_ps(xs[b][i]);
-            }
-        }
+        let xv = broadcast(xs);
         let mut part = [_mm512_setzero_ps(); B];
-        for o in (0..self.m8).step_by(WIDE) {
-            let mk = tail_mask(o, self.m8);
-            // SAFETY (loads and stores here): the mask covers only lanes below m8, the moving
-            // points' length; each row holds m16 from b·m16, and B ≤ BLOCK rows fit.
-            let (y0, y1, y2, w) = unsafe {
-                (
-                    _mm512_maskz_loadu_ps(mk, self.y[0].add(o)),
-                    _mm512_maskz_loadu_ps(mk, self.y[1].add(o)),
-                    _mm512_maskz_loadu_ps(mk, self.y[2].add(o)),
-                    _mm512_maskz_loadu_ps(mk, self.w.add(o)),
-                )
-            };
+        for o in (0..self.moving.m8).step_by(WIDE) {
+            // SAFETY: o < m8; each row holds m16 from b·m16, and B ≤ BLOCK rows fit.
+            let yw = unsafe { self.moving.at(o) };
             for b in 0..B {
-                let (dx, dy, dz) =
-                    (_mm512_sub_ps(xv[b][0], y0), _mm512_sub_ps(xv[b][1], y1), _mm512_sub_ps(xv[b][2], y2));
-                let d2 = _mm512_fmadd_ps(dx, dx, _mm512_fmadd_ps(dy, dy, _mm512_mul_ps(dz, dz)));
-                let v = weighted_exp2_neg_f32x16(w, _mm512_mul_ps(self.k, d2));
+                let v = self.moving.affinity(&xv[b], &yw);
                 unsafe { _mm512_storeu_ps(self.row.add(b * self.m16 + o), v) };
                 part[b] = _mm512_add_ps(part[b], v);
             }
@@ -228,78 +290,21 @@ pub(super) unsafe fn dense_centroids(b: &F32Buffers, x: &[P3], k: f32, c: f64) -
     let F32Buffers { x: x32, ys, pi, .. } = b;
     let m8 = pi.len();
     assert!(m8.is_multiple_of(LANES) && ys.iter().all(|v| v.len() == m8) && x32.len() == x.len());
-    let rows =
-        CentroidRows { y: [ys[0].as_ptr(), ys[1].as_ptr(), ys[2].as_ptr()], w: pi.as_ptr(), m8, k: _mm512_set1_ps(k) };
+    let moving = Moving::new(ys, pi, k);
     let mut sums = [[0.0; 3], [0.0; 3]];
     let mut np = 0.0;
     let mut blocks = x32.chunks_exact(BLOCK).zip(x.chunks_exact(BLOCK));
     for (block, block64) in blocks.by_ref() {
-        // SAFETY: `rows` points into buffers of the lengths it records.
-        let totals = unsafe { rows.block::<BLOCK>(block.try_into().expect("a whole block")) };
+        // SAFETY: `moving` points into buffers of the lengths it records.
+        let totals = unsafe { moving.centroid_block::<BLOCK>(block.try_into().expect("a whole block")) };
         close_centroid_rows(&totals, block64, c, &mut sums, &mut np);
     }
     let done = x.len() - x.len() % BLOCK;
     for (xn, x64) in x32[done..].iter().zip(&x[done..]) {
         // SAFETY: as above.
-        let totals = unsafe { rows.block::<1>(&[*xn]) };
+        let totals = unsafe { moving.centroid_block::<1>(&[*xn]) };
         close_centroid_rows(&totals, std::slice::from_ref(x64), c, &mut sums, &mut np);
     }
     let [mx, my] = sums;
     (mx, my, np)
-}
-
-/// The buffers of `dense_centroids`: the moving points and their weights, `m8` long.
-struct CentroidRows {
-    y: [*const f32; 3],
-    w: *const f32,
-    m8: usize,
-    k: __m512,
-}
-
-impl CentroidRows {
-    /// Per data point of `xs`: Σₘ aₘ and Σₘ aₘ yₘ over its affinities aₘ.
-    ///
-    /// # Safety
-    /// The pointers hold the lengths `CentroidRows` records.
-    #[target_feature(enable = "avx512f")]
-    #[inline]
-    unsafe fn block<const B: usize>(&self, xs: &[[f32; 3]; B]) -> [[f64; 4]; B] {
-        // No closures here (see `Rows::block`).
-        let mut xv = [[_mm512_setzero_ps(); 3]; B];
-        for b in 0..B {
-            for i in 0..3 {
-                xv[b][i] = _mm512_set1_ps(xs[b][i]);
-            }
-        }
-        let mut acc = [[_mm512_setzero_ps(); 4]; B];
-        for o in (0..self.m8).step_by(WIDE) {
-            let mk = tail_mask(o, self.m8);
-            // SAFETY: the mask covers only lanes below m8, every buffer's length.
-            let (y0, y1, y2, w) = unsafe {
-                (
-                    _mm512_maskz_loadu_ps(mk, self.y[0].add(o)),
-                    _mm512_maskz_loadu_ps(mk, self.y[1].add(o)),
-                    _mm512_maskz_loadu_ps(mk, self.y[2].add(o)),
-                    _mm512_maskz_loadu_ps(mk, self.w.add(o)),
-                )
-            };
-            for b in 0..B {
-                let (dx, dy, dz) =
-                    (_mm512_sub_ps(xv[b][0], y0), _mm512_sub_ps(xv[b][1], y1), _mm512_sub_ps(xv[b][2], y2));
-                let d2 = _mm512_fmadd_ps(dx, dx, _mm512_fmadd_ps(dy, dy, _mm512_mul_ps(dz, dz)));
-                let v = weighted_exp2_neg_f32x16(w, _mm512_mul_ps(self.k, d2));
-                acc[b][0] = _mm512_add_ps(acc[b][0], v);
-                acc[b][1] = _mm512_fmadd_ps(v, y0, acc[b][1]);
-                acc[b][2] = _mm512_fmadd_ps(v, y1, acc[b][2]);
-                acc[b][3] = _mm512_fmadd_ps(v, y2, acc[b][3]);
-            }
-        }
-        let mut totals = [[0.0; 4]; B];
-        for b in 0..B {
-            for i in 0..4 {
-                totals[b][i] = lane_sum_f64(acc[b][i]);
-            }
-        }
-        totals
-    }
 }
