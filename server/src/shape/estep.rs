@@ -37,7 +37,17 @@ impl Simd {
         let env_cap = *ENV_CAP.get_or_init(|| match std::env::var("GRASPD_SIMD").as_deref() {
             Ok("portable") => Simd::Portable,
             Ok("avx2") => Simd::Avx2,
-            _ => Simd::Avx512,
+            Ok("avx512") | Err(std::env::VarError::NotPresent) => Simd::Avx512,
+            Ok(other) => {
+                tracing::warn!(
+                    "GRASPD_SIMD={other:?} is none of portable, avx2, avx512: not capping the E-step kernels"
+                );
+                Simd::Avx512
+            }
+            Err(std::env::VarError::NotUnicode(v)) => {
+                tracing::warn!("GRASPD_SIMD={v:?} is not UTF-8: not capping the E-step kernels");
+                Simd::Avx512
+            }
         });
         let cap = cap.min(env_cap);
         #[cfg(target_arch = "x86_64")]
