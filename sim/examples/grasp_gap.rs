@@ -4,7 +4,7 @@
 //! `cargo run --release -p graspd-sim --example grasp_gap -- hammer_train_00 0`;
 //! a mug (`mug_train_01`) runs Place-mug episodes instead.
 
-use graspd::grasp::transfer::{solve_transferred, Similarity, TransferredTool};
+use graspd::grasp::transfer::{solve_transferred, Similarity, TransferModel, TransferredTool};
 use graspd::grasp::{Demonstration, GraspSolver, PreGraspOptions, SolveOptions, ToolCollider};
 use graspd::shape::builtin;
 use graspd::tools::{self, Category, Split};
@@ -68,7 +68,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             NailFixture::contact(),
         )?
     };
-    let true_tool = TransferredTool::from_latent(&space, &true_latent, &kp, &canonical.mesh)?;
+    let model = TransferModel::new(&space, &kp, &canonical.mesh);
+    let true_tool = TransferredTool::from_latent(&model, &true_latent)?;
     println!("true registered-shape lowest z (tool frame) {:.4}", true_tool.lowest_z());
     println!("mode σ {:?}", space.variances.iter().map(|v| format!("{:.2}", v.sqrt())).collect::<Vec<_>>());
     for (i, l) in space.train_latents.iter().enumerate() {
@@ -79,7 +80,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         );
     }
     let posed = |latent: &[f64], pose: &Similarity| -> TransferredTool {
-        let mut t = TransferredTool::from_latent(&space, latent, &kp, &canonical.mesh).unwrap();
+        let mut t = TransferredTool::from_latent(&model, latent).unwrap();
         for p in t.targets.iter_mut().chain(t.mesh.vertices.iter_mut()) {
             *p = pose.apply(p);
         }

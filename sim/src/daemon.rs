@@ -15,7 +15,7 @@
 
 use std::time::{Duration, Instant};
 
-use graspd::grasp::transfer::{solve_transferred, Similarity, TransferredTool};
+use graspd::grasp::transfer::{solve_transferred, Similarity, TransferModel, TransferredTool};
 use graspd::grasp::{Demonstration, Grasp, GraspSolver, PreGraspOptions, SolveOptions};
 use graspd::hand::HandModel;
 use graspd::shape::{RegisterOptions, Registrar, ShapeSpace};
@@ -91,8 +91,7 @@ enum Backend {
 struct EngineBackend {
     registrar: Registrar,
     demo: Demonstration,
-    demo_keypoints: Vec<Point3<f64>>,
-    canonical_mesh: graspd::geometry::TriMesh,
+    transfer: TransferModel,
 }
 
 /// A connected client of one daemon (or the engine in-process), with the camera and frame it uses.
@@ -161,7 +160,8 @@ impl DaemonGrasper {
             .find(|i| i.split == Split::Canonical)
             .ok_or_else(|| err(&"the family has no canonical instance"))?
             .mesh;
-        let backend = EngineBackend { registrar: Registrar::new(space), demo, demo_keypoints, canonical_mesh };
+        let transfer = TransferModel::new(&space, &demo_keypoints, &canonical_mesh);
+        let backend = EngineBackend { registrar: Registrar::new(space), demo, transfer };
         Ok(Self {
             backend: Backend::Engine(Box::new(backend)),
             options: DaemonOptions { prefix: "in-process".into(), ..DaemonOptions::default() },
@@ -277,9 +277,8 @@ impl EngineBackend {
             ..RegisterOptions::default()
         };
         let reg = self.registrar.register(&points, &register).map_err(|e| err("cannot register the cloud", &e))?;
-        let tool =
-            TransferredTool::from_registration(&self.registrar, &reg, &self.demo_keypoints, &self.canonical_mesh)
-                .map_err(|e| err("cannot carry the demonstration onto the registered shape", &e))?;
+        let tool = TransferredTool::from_registration(&self.registrar, &reg, &self.transfer)
+            .map_err(|e| err("cannot carry the demonstration onto the registered shape", &e))?;
         let table_z = match opts.table {
             Some(Table::At(z)) => Some(z as f64),
             _ => None,

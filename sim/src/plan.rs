@@ -36,7 +36,7 @@
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
 
-use graspd::grasp::transfer::{solve_transferred, Similarity, TransferredTool};
+use graspd::grasp::transfer::{solve_transferred, Similarity, TransferModel, TransferredTool};
 use graspd::grasp::{
     pregrasp, task_space_distance_cm, Demonstration, Grasp, GraspSolver, PreGraspOptions, Scene, SolveOptions,
     ToolCollider,
@@ -325,8 +325,8 @@ impl GraspPlanner {
         })?;
         let keypoints = self.demo.keypoints(hand).map_err(engine_error)?;
         let canonical = self.canonical_instance()?;
-        let tool = TransferredTool::from_latent(&self.space, &self.space.train_latents[k], &keypoints, &canonical.mesh)
-            .map_err(engine_error)?;
+        let model = TransferModel::new(&self.space, &keypoints, &canonical.mesh);
+        let tool = TransferredTool::from_latent(&model, &self.space.train_latents[k]).map_err(engine_error)?;
         // As `graspd eval grasp`: the table under the registered shape.
         let table = self.demo.table.then(|| tool.lowest_z());
         let out =

@@ -7,7 +7,7 @@ use super::space::spaces_dir;
 use super::{print_json, progress_bar, CliResult};
 use clap::Args;
 use graspd::eval::grasp::{evaluate_grasps, percentile, GraspEvalOptions};
-use graspd::grasp::transfer::{solve_transferred, TransferredTool};
+use graspd::grasp::transfer::{solve_transferred, TransferModel, TransferredTool};
 use graspd::grasp::{Demonstration, Grasp, GraspSolver, GraspTargets, PoseFile, PreGraspOptions, Scene, SolveOptions};
 use graspd::hand::HandModel;
 use graspd::shape::{builtin, RegisterOptions, Registrar};
@@ -296,10 +296,11 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
     let t_load = Instant::now();
     let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
     let registrar = Registrar::new(space);
+    let model = TransferModel::new(&registrar.space, &demo_keypoints, &canonical.mesh);
     let load_ms = 1e3 * t_load.elapsed().as_secs_f64();
 
     let reg = registrar.register(&cloud, &RegisterOptions { up, viewpoint, seed: a.seed, ..Default::default() })?;
-    let tool = TransferredTool::from_registration(&registrar, &reg, &demo_keypoints, &canonical.mesh)?;
+    let tool = TransferredTool::from_registration(&registrar, &reg, &model)?;
 
     let mut warnings = Vec::new();
     if !reg.fit.confident {

@@ -13,7 +13,7 @@
 
 use serde::Serialize;
 
-use crate::grasp::transfer::{solve_transferred, TransferredTool};
+use crate::grasp::transfer::{solve_transferred, TransferModel, TransferredTool};
 use crate::grasp::{Demonstration, GraspError, GraspSolver, PreGraspOptions, Scene, SolveOptions, ToolCollider};
 use crate::hand::HandModel;
 use crate::shape::ShapeSpace;
@@ -148,6 +148,7 @@ pub fn evaluate_grasps(
     }
     let keypoints = demo.keypoints(hand)?;
     let mut solver = GraspSolver::new(hand, opts.solve.clone());
+    let model = TransferModel::new(space, &keypoints, &canonical.mesh);
     let mut rows = Vec::new();
     let mut times = Vec::new();
     for inst in training {
@@ -156,7 +157,7 @@ pub fn evaluate_grasps(
             .iter()
             .position(|n| n == &inst.name)
             .ok_or_else(|| GraspEvalError::NoLatent(inst.name.clone()))?;
-        let tool = TransferredTool::from_latent(space, &space.train_latents[k], &keypoints, &canonical.mesh)?;
+        let tool = TransferredTool::from_latent(&model, &space.train_latents[k])?;
         let table = opts.table.then(|| tool.lowest_z());
         let mut out = solve_transferred(&mut solver, demo, &tool, table, &PreGraspOptions::default())?;
         times.push(out.report.elapsed_ms);

@@ -913,7 +913,7 @@ fn an_inside_out_part_is_not_inside_far_away() {
 #[test]
 fn pregrasp_search_clears_the_table_under_a_drill() {
     use crate::grasp::pregrasp::pregrasp;
-    use crate::grasp::transfer::{solve_transferred, TransferredTool};
+    use crate::grasp::transfer::{solve_transferred, TransferModel, TransferredTool};
     use crate::tools::{self, Category, Split};
     let hand = sih();
     let demo = Demonstration::builtin(Category::Drill).unwrap();
@@ -922,7 +922,8 @@ fn pregrasp_search_clears_the_table_under_a_drill() {
     let (space, _) =
         crate::shape::builtin::build(Category::Drill, &crate::shape::BuildOptions::default(), |_, _| {}).unwrap();
     let keypoints = demo.keypoints(&hand).unwrap();
-    let tool = TransferredTool::from_latent(&space, &space.train_latents[0], &keypoints, &canonical.mesh).unwrap();
+    let model = TransferModel::new(&space, &keypoints, &canonical.mesh);
+    let tool = TransferredTool::from_latent(&model, &space.train_latents[0]).unwrap();
     let table = Some(tool.lowest_z());
     let mut solver = GraspSolver::new(&hand, SolveOptions::default());
     let out = solve_transferred(&mut solver, &demo, &tool, table, &PreGraspOptions::default()).unwrap();

@@ -8,7 +8,7 @@
 //! pre-grasp.
 //!
 //! ```no_run
-//! use graspd::grasp::{transfer::{solve_transferred, TransferredTool}, Demonstration, GraspSolver, SolveOptions, PreGraspOptions};
+//! use graspd::grasp::{transfer::{solve_transferred, TransferModel, TransferredTool}, Demonstration, GraspSolver, SolveOptions, PreGraspOptions};
 //! use graspd::hand::HandModel;
 //! use graspd::shape::{builtin, Registrar, RegisterOptions};
 //! use graspd::tools::{self, Category, Split};
@@ -18,7 +18,8 @@
 //! let canonical = tools::family(Category::Mug).unwrap().into_iter().find(|i| i.split == Split::Canonical).unwrap();
 //! let registrar = Registrar::new(builtin::load_or_build(Category::Mug, "assets/spaces".as_ref(), |_, _| {}).unwrap());
 //! let reg = registrar.register(&cloud(), &RegisterOptions::default()).unwrap();
-//! let tool = TransferredTool::from_registration(&registrar, &reg, &demo.keypoints(&hand).unwrap(), &canonical.mesh).unwrap();
+//! let model = TransferModel::new(&registrar.space, &demo.keypoints(&hand).unwrap(), &canonical.mesh);
+//! let tool = TransferredTool::from_registration(&registrar, &reg, &model).unwrap();
 //! let mut solver = GraspSolver::new(&hand, SolveOptions::default());
 //! let out = solve_transferred(&mut solver, &demo, &tool, Some(0.0), &PreGraspOptions::default()).unwrap();
 //! ```
@@ -34,6 +35,7 @@ use super::{
     task_space_distance_cm as distance_cm, Demonstration, Grasp, GraspError, GraspSolver, GraspTargets, SolveReport,
 };
 use crate::geometry::TriMesh;
+use crate::shape::space::AnchoredModel;
 use crate::shape::{Registrar, Registration, ShapeSpace};
 
 /// A similarity transform x = s·R·z + t (the registered pose of a tool:
@@ -77,6 +79,34 @@ impl Similarity {
     }
 }
 
+/// A category's demonstration keypoints and canonical mesh, ready to be
+/// carried onto any tool of its shape space. The deformation's linear models
+/// of both (the Gaussian kernel of every point against every centre, and the
+/// surface samples off-surface points follow) do not depend on the tool, so
+/// they are made once per category, not per request: measured with
+/// `bench_grasp`, carrying the mug's 2,036-vertex mesh cost 47 ms a request
+/// when they were made each time.
+#[derive(Clone, Debug)]
+pub struct TransferModel {
+    keypoints: AnchoredModel,
+    vertices: AnchoredModel,
+    triangles: Vec<[u32; 3]>,
+    parts: Vec<std::ops::Range<usize>>,
+}
+
+impl TransferModel {
+    /// `demo_keypoints_canonical` and `canonical_mesh` in the canonical tool frame, metres.
+    pub fn new(space: &ShapeSpace, demo_keypoints_canonical: &[Point3<f64>], canonical_mesh: &TriMesh) -> Self {
+        let points = |ps: &[Point3<f64>]| ps.iter().map(|p| [p.x, p.y, p.z]).collect::<Vec<_>>();
+        Self {
+            keypoints: space.anchored_model(&points(demo_keypoints_canonical)),
+            vertices: space.anchored_model(&points(&canonical_mesh.vertices)),
+            triangles: canonical_mesh.triangles.clone(),
+            parts: canonical_mesh.parts.clone(),
+        }
+    }
+}
+
 /// The demonstration moved onto one tool.
 #[derive(Debug)]
 pub struct TransferredTool {
@@ -98,44 +128,38 @@ impl TransferredTool {
     pub fn from_registration(
         registrar: &Registrar,
         reg: &Registration,
-        demo_keypoints_canonical: &[Point3<f64>],
-        canonical_mesh: &TriMesh,
+        model: &TransferModel,
     ) -> Result<Self, GraspError> {
-        Self::build(Similarity::of_registration(reg), demo_keypoints_canonical, canonical_mesh, |z| {
-            registrar.transfer(reg, z)
-        })
+        let t0 = Instant::now();
+        let targets = registrar.transfer_anchored(reg, &model.keypoints);
+        let vertices = registrar.transfer_anchored(reg, &model.vertices);
+        Self::build(Similarity::of_registration(reg), targets, vertices, model, t0)
     }
 
-    /// Through a latent of `space` alone, the tool at its canonical pose
-    /// (a training instance: `space.train_latents`).
-    pub fn from_latent(
-        space: &ShapeSpace,
-        latent: &[f64],
-        demo_keypoints_canonical: &[Point3<f64>],
-        canonical_mesh: &TriMesh,
-    ) -> Result<Self, GraspError> {
-        Self::build(Similarity::identity(), demo_keypoints_canonical, canonical_mesh, |z| {
-            space.deform_anchored(z, latent)
-        })
+    /// Through a latent of the shape space `model` was made from alone, the
+    /// tool at its canonical pose (a training instance: `space.train_latents`).
+    pub fn from_latent(model: &TransferModel, latent: &[f64]) -> Result<Self, GraspError> {
+        let t0 = Instant::now();
+        let targets = model.keypoints.evaluate(latent);
+        let vertices = model.vertices.evaluate(latent);
+        Self::build(Similarity::identity(), targets, vertices, model, t0)
     }
 
     fn build(
         pose: Similarity,
-        keypoints: &[Point3<f64>],
-        canonical_mesh: &TriMesh,
-        deform: impl Fn(&[[f64; 3]]) -> Vec<[f64; 3]>,
+        targets: Vec<[f64; 3]>,
+        vertices: Vec<[f64; 3]>,
+        model: &TransferModel,
+        t0: Instant,
     ) -> Result<Self, GraspError> {
-        let t0 = Instant::now();
-        let kp: Vec<[f64; 3]> = keypoints.iter().map(|p| [p.x, p.y, p.z]).collect();
-        let targets: Vec<Point3<f64>> = deform(&kp).into_iter().map(Point3::from).collect();
+        let targets: Vec<Point3<f64>> = targets.into_iter().map(Point3::from).collect();
         if let Some(index) = targets.iter().position(|p| !p.coords.iter().all(|v| v.is_finite())) {
             return Err(GraspError::NonFiniteKeypoint { index });
         }
-        let vs: Vec<[f64; 3]> = canonical_mesh.vertices.iter().map(|p| [p.x, p.y, p.z]).collect();
         let mesh = TriMesh {
-            vertices: deform(&vs).into_iter().map(Point3::from).collect(),
-            triangles: canonical_mesh.triangles.clone(),
-            parts: canonical_mesh.parts.clone(),
+            vertices: vertices.into_iter().map(Point3::from).collect(),
+            triangles: model.triangles.clone(),
+            parts: model.parts.clone(),
         };
         let collider = ToolCollider::new(&mesh, Isometry3::identity())?;
         Ok(Self { pose, targets, mesh, collider, elapsed_ms: 1e3 * t0.elapsed().as_secs_f64() })

@@ -1,11 +1,10 @@
 //! The engine behind the service: loaded categories, and the conversion of
 //! wire requests into engine calls and of engine results into wire bodies.
 
-use crate::geometry::TriMesh;
-use crate::grasp::transfer::{solve_transferred, TransferredTool};
+use crate::grasp::transfer::{solve_transferred, TransferModel, TransferredTool};
 use crate::grasp::{Demonstration, GraspSolver, PreGraspOptions, SolveOptions};
 use crate::hand::HandModel;
-use crate::shape::{builtin, RegisterOptions, Registrar};
+use crate::shape::{builtin, RegisterOptions, Registrar, ShapeSpace};
 use crate::tools::{Category, Split};
 use graspd_proto::{self as proto, StatusCode};
 use nalgebra::Point3;
@@ -29,11 +28,11 @@ impl Status {
 }
 
 /// What Grasp needs of a category beyond its shape space: the demonstration
-/// (canonical frame) and the canonical mesh it is carried on.
+/// (canonical frame), and its keypoints and the canonical mesh as models
+/// of the latent (made once here, evaluated per request).
 pub struct GraspAssets {
     pub demo: Demonstration,
-    pub demo_keypoints: Vec<Point3<f64>>,
-    pub canonical_mesh: TriMesh,
+    pub transfer: TransferModel,
 }
 
 pub struct LoadedCategory {
@@ -114,7 +113,7 @@ impl Engine {
             info.canonical_frame = proto::str_to_text(category.canonical_frame());
             let registrar = Registrar::new(space);
             let grasp = match &hand {
-                Ok(h) => grasp_assets(category, h),
+                Ok(h) => grasp_assets(category, h, &registrar.space),
                 Err(e) => Err(e.clone()),
             };
             if let Err(e) = &grasp {
@@ -187,11 +186,8 @@ impl Engine {
             .registrar
             .register(&cloud, &opts)
             .map_err(|e| Status::invalid(format!("cannot register the cloud: {e}")))?;
-        let tool =
-            TransferredTool::from_registration(&c.registrar, &reg, &assets.demo_keypoints, &assets.canonical_mesh)
-                .map_err(|e| {
-                    Status::invalid(format!("cannot carry the demonstration onto the registered shape: {e}"))
-                })?;
+        let tool = TransferredTool::from_registration(&c.registrar, &reg, &assets.transfer)
+            .map_err(|e| Status::invalid(format!("cannot carry the demonstration onto the registered shape: {e}")))?;
         let mut warnings = 0;
         if !reg.fit.confident {
             warnings |= proto::grasp_warning::REGISTRATION_NOT_CONFIDENT;
@@ -241,7 +237,7 @@ impl Engine {
     }
 }
 
-fn grasp_assets(category: Category, hand: &HandModel) -> Result<GraspAssets, String> {
+fn grasp_assets(category: Category, hand: &HandModel, space: &ShapeSpace) -> Result<GraspAssets, String> {
     let demo = Demonstration::builtin(category).map_err(|e| format!("demonstration: {e}"))?;
     let demo_keypoints = demo.keypoints(hand).map_err(|e| format!("demonstration: {e}"))?;
     let canonical_mesh = crate::tools::family(category)
@@ -250,7 +246,8 @@ fn grasp_assets(category: Category, hand: &HandModel) -> Result<GraspAssets, Str
         .find(|i| i.split == Split::Canonical)
         .ok_or("the family has no canonical instance")?
         .mesh;
-    Ok(GraspAssets { demo, demo_keypoints, canonical_mesh })
+    let transfer = TransferModel::new(space, &demo_keypoints, &canonical_mesh);
+    Ok(GraspAssets { demo, transfer })
 }
 
 fn hand_to_wire(g: &crate::grasp::Grasp) -> proto::HandConfiguration {

@@ -20,7 +20,7 @@ use super::cpd::{weighted_similarity, Normalization};
 use super::estep::{dist2, dot, initial_sigma2, EStep, Posteriors, P3};
 use super::freespace::FreeSpace;
 use super::sampling::{drop_stray_points, even_subsample, subsample};
-use super::space::{LinearModel, NamedPoint, ShapeSpace};
+use super::space::{AnchoredModel, LinearModel, NamedPoint, ShapeSpace};
 use faer::prelude::*;
 use faer::Side;
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
@@ -539,11 +539,23 @@ impl Registrar {
     /// Any canonical points (canonical frame, metres), on the surface or off
     /// it (a demonstration's hand keypoints), moved onto the registered tool.
     pub fn transfer(&self, reg: &Registration, canonical_points: &[P3]) -> Vec<P3> {
+        if reg.latent.is_empty() {
+            let pose = self.pose_of(reg);
+            return canonical_points.iter().map(|z| pose.apply(&self.space.norm.forward(z))).collect();
+        }
+        self.transfer_anchored(reg, &self.space.anchored_model(canonical_points))
+    }
+
+    /// As [`Self::transfer`], for points whose [`AnchoredModel`] was made
+    /// beforehand (once, for points carried onto every registered tool).
+    pub fn transfer_anchored(&self, reg: &Registration, model: &AnchoredModel) -> Vec<P3> {
         let pose = self.pose_of(reg);
+        let evaluated;
         let deformed = if reg.latent.is_empty() {
-            canonical_points.to_vec()
+            model.canonical()
         } else {
-            self.space.deform_anchored(canonical_points, &reg.latent)
+            evaluated = model.evaluate(&reg.latent);
+            &evaluated
         };
         deformed.iter().map(|z| pose.apply(&self.space.norm.forward(z))).collect()
     }

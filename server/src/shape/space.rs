@@ -394,45 +394,61 @@ impl ShapeSpace {
     /// local similarity (rotation, scale, translation) of its nearest surface
     /// samples instead, blended with the field within 3-10 mm of the surface.
     pub fn deform_anchored(&self, z: &[P3], latent: &[f64]) -> Vec<P3> {
+        self.anchored_model(z).evaluate(latent)
+    }
+
+    /// The part of [`Self::deform_anchored`] that does not depend on the
+    /// latent, for points carried again and again (a category's mesh and
+    /// demonstration keypoints, once per Grasp request): the Gaussian kernel
+    /// against every centre and the nearest-sample search are done here once.
+    pub fn anchored_model(&self, z: &[P3]) -> AnchoredModel {
         const NEAR: f64 = 0.003;
         const FAR: f64 = 0.010;
-        let direct = self.deform(z, latent);
+        let direct = self.linear_model(z);
+        let empty = LinearModel { base: Vec::new(), basis: Vec::new() };
+        let mut model = AnchoredModel {
+            norm: self.norm,
+            canonical: z.to_vec(),
+            direct,
+            anchor_points: Vec::new(),
+            anchors: empty,
+            off_surface: Vec::new(),
+        };
         if self.surface.len() < 16 {
-            return direct;
+            return model;
         }
         let tree: kiddo::immutable::float::kdtree::ImmutableKdTree<f64, u32, 3, 32> =
             kiddo::immutable::float::kdtree::ImmutableKdTree::new_from_slice(&self.surface);
         // The patch grows with the distance to the surface: a point 6 cm above a
         // thin handle needs a patch wide enough to pin the handle's roll, or the
         // fitted rotation swings it (measured: 13 cm off on hammers with 16 samples).
-        let nbrs: Vec<Vec<usize>> = z
-            .iter()
-            .map(|p| {
-                let dist = tree.nearest_one::<kiddo::SquaredEuclidean>(p).distance.sqrt();
-                let n = (16.0 * (1.0 + dist / 0.005).powi(2)).clamp(16.0, 400.0) as usize;
-                let k = std::num::NonZero::new(n.min(self.surface.len())).expect("non-zero");
-                tree.nearest_n::<kiddo::SquaredEuclidean>(p, k).iter().map(|nb| nb.item as usize).collect()
-            })
-            .collect();
-        let mut anchors: Vec<usize> = nbrs.iter().flatten().copied().collect();
+        let mut far: Vec<(usize, f64, Vec<usize>)> = Vec::new();
+        for (i, p) in z.iter().enumerate() {
+            let dist = tree.nearest_one::<kiddo::SquaredEuclidean>(p).distance.sqrt();
+            if dist <= NEAR {
+                continue;
+            }
+            let n = (16.0 * (1.0 + dist / 0.005).powi(2)).clamp(16.0, 400.0) as usize;
+            let k = std::num::NonZero::new(n.min(self.surface.len())).expect("non-zero");
+            let nbrs: Vec<usize> =
+                tree.nearest_n::<kiddo::SquaredEuclidean>(p, k).iter().map(|nb| nb.item as usize).collect();
+            let blend = ((dist - NEAR) / (FAR - NEAR)).clamp(0.0, 1.0);
+            far.push((i, blend, nbrs));
+        }
+        let mut anchors: Vec<usize> = far.iter().flat_map(|(_, _, nb)| nb.iter().copied()).collect();
         anchors.sort_unstable();
         anchors.dedup();
-        let moved = self.deform(&anchors.iter().map(|&i| self.surface[i]).collect::<Vec<_>>(), latent);
-        z.iter()
-            .zip(&direct)
-            .zip(&nbrs)
-            .map(|((p, d), nb)| {
-                let src: Vec<P3> = nb.iter().map(|&i| self.surface[i]).collect();
-                let dst: Vec<P3> = nb.iter().map(|i| moved[anchors.binary_search(i).expect("anchor")]).collect();
-                let dist = super::estep::dist2(p, &src[0]).sqrt();
-                if dist <= NEAR {
-                    return *d;
-                }
-                let local = local_similarity(&src, &dst, p);
-                let t = ((dist - NEAR) / (FAR - NEAR)).clamp(0.0, 1.0);
-                [d[0] * (1.0 - t) + local[0] * t, d[1] * (1.0 - t) + local[1] * t, d[2] * (1.0 - t) + local[2] * t]
+        model.anchor_points = anchors.iter().map(|&i| self.surface[i]).collect();
+        model.anchors = self.linear_model(&model.anchor_points);
+        model.off_surface = far
+            .into_iter()
+            .map(|(point, blend, nbrs)| OffSurface {
+                point,
+                blend,
+                neighbours: nbrs.iter().map(|i| anchors.binary_search(i).expect("anchor")).collect(),
             })
-            .collect()
+            .collect();
+        model
     }
 
     // ------------------------------------------------------------ artefact
@@ -535,6 +551,67 @@ fn local_similarity(src: &[P3], dst: &[P3], p: &P3) -> P3 {
     };
     let q = md + scale.clamp(0.5, 2.0) * (r * (Vector3::from(*p) - ms));
     [q.x, q.y, q.z]
+}
+
+/// Fixed canonical points carried by [`ShapeSpace::deform_anchored`]: the
+/// field's linear model for all of them and, for those more than 3 mm off
+/// the surface, the surface samples whose local similarity they follow
+/// (blended with the field up to 10 mm). Evaluating it costs O(points ·
+/// modes) plus a 3×3 SVD per off-surface point.
+#[derive(Clone, Debug)]
+pub struct AnchoredModel {
+    norm: Normalization,
+    /// The points, canonical frame, metres.
+    canonical: Vec<P3>,
+    direct: LinearModel,
+    /// The surface samples some off-surface point follows (canonical frame)
+    /// and their linear model.
+    anchor_points: Vec<P3>,
+    anchors: LinearModel,
+    off_surface: Vec<OffSurface>,
+}
+
+#[derive(Clone, Debug)]
+struct OffSurface {
+    point: usize,
+    /// Weight of the local similarity against the field, (0, 1].
+    blend: f64,
+    /// Indices into the anchors, nearest first.
+    neighbours: Vec<usize>,
+}
+
+impl AnchoredModel {
+    pub fn len(&self) -> usize {
+        self.canonical.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.canonical.is_empty()
+    }
+    /// The points undeformed, canonical frame, metres.
+    pub fn canonical(&self) -> &[P3] {
+        &self.canonical
+    }
+
+    /// The points moved by the deformation of `latent`, canonical frame, metres.
+    pub fn evaluate(&self, latent: &[f64]) -> Vec<P3> {
+        let mut out: Vec<P3> = self.direct.evaluate(latent).iter().map(|p| self.norm.inverse(p)).collect();
+        if self.off_surface.is_empty() {
+            return out;
+        }
+        let moved: Vec<P3> = self.anchors.evaluate(latent).iter().map(|p| self.norm.inverse(p)).collect();
+        let (mut src, mut dst) = (Vec::new(), Vec::new());
+        for o in &self.off_surface {
+            src.clear();
+            dst.clear();
+            src.extend(o.neighbours.iter().map(|&a| self.anchor_points[a]));
+            dst.extend(o.neighbours.iter().map(|&a| moved[a]));
+            let local = local_similarity(&src, &dst, &self.canonical[o.point]);
+            let (d, t) = (out[o.point], o.blend);
+            out[o.point] =
+                [d[0] * (1.0 - t) + local[0] * t, d[1] * (1.0 - t) + local[1] * t, d[2] * (1.0 - t) + local[2] * t];
+        }
+        out
+    }
 }
 
 /// Canonical points as an affine function of the latent, normalised coordinates.

@@ -1,0 +1,43 @@
+//! The test views the benchmarks share: each test instance of a category
+//! turned to 8 yaws on a table, seen by the standard camera ring with depth
+//! noise, subsampled to about 2,000 points (the shape-engine issue's size).
+use graspd::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
+use graspd::tools::{self, Category, Split};
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+
+/// One view: the cloud (world frame, z up, table at z = 0) and the camera
+/// position it was seen from.
+pub struct View {
+    pub cloud: Vec<Point3<f64>>,
+    pub viewpoint: [f64; 3],
+}
+
+pub fn test_views(category: Category) -> Result<Vec<View>, Box<dyn std::error::Error>> {
+    let family = tools::family(category)?;
+    let mut views = Vec::new();
+    for inst in family.iter().filter(|i| i.split == Split::Test) {
+        for view in 0..8 {
+            let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.7 * view as f64);
+            let zmin = inst.mesh.vertices.iter().map(|p| (rot * p).z).fold(f64::INFINITY, f64::min);
+            let pose = Isometry3::from_parts(Translation3::new(0.0, 0.0, -zmin), rot);
+            let scene = Scene::new(&inst.mesh, pose, Some(0.0))?;
+            let (lo, hi) = inst.mesh.aabb().ok_or("empty mesh")?;
+            let centre = pose * Point3::from((lo.coords + hi.coords) / 2.0);
+            let intrinsics = Intrinsics::default();
+            let cam_pose = standard_view(view, 8, centre, inst.mesh.diagonal(), intrinsics)?;
+            let cam = DepthCamera { intrinsics, world_from_camera: cam_pose, noise: DepthNoise::default() };
+            let cloud = cam.capture(&scene, view as u64)?.points_world;
+            let cloud: Vec<_> = cloud.iter().step_by((cloud.len() / 2000).max(1)).copied().collect();
+            let t = cam_pose.translation.vector;
+            views.push(View { cloud, viewpoint: [t.x, t.y, t.z] });
+        }
+    }
+    Ok(views)
+}
+
+/// Nearest-rank percentile (q in [0, 1]) of a non-empty sample.
+pub fn percentile(v: &[f64], q: f64) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    s[((s.len() - 1) as f64 * q).round() as usize]
+}
