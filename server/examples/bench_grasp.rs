@@ -35,6 +35,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     let mut stages: [Vec<f64>; 5] = Default::default();
     let mut penetration = Vec::new();
+    let mut tsd = Vec::new();
+    let mut best_start = [0usize; 16];
+    let mut iterations = 0usize;
+    let starts: usize = std::env::var("STARTS").map_or(Ok(SolveOptions::default().starts), |s| s.parse())?;
     for _ in 0..repeats {
         for (k, view) in views.iter().enumerate() {
             let t0 = std::time::Instant::now();
@@ -42,7 +46,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let reg = registrar.register(&view.cloud, &opts)?;
             let t_reg = t0.elapsed().as_secs_f64() * 1e3;
             let tool = TransferredTool::from_registration(&registrar, &reg, &model)?;
-            let mut solver = GraspSolver::new(&hand, SolveOptions { seed: k as u64, ..Default::default() });
+            let mut solver = GraspSolver::new(&hand, SolveOptions { seed: k as u64, starts, ..Default::default() });
             let out = solve_transferred(&mut solver, &demo, &tool, Some(0.0), &PreGraspOptions::default())?;
             let total = t0.elapsed().as_secs_f64() * 1e3;
             for (v, x) in stages.iter_mut().zip([t_reg, tool.elapsed_ms, out.report.elapsed_ms, out.pregrasp_ms, total])
@@ -50,6 +54,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 v.push(x);
             }
             penetration.push(out.report.penetration_mm);
+            best_start[out.report.best_start.min(15)] += 1;
+            iterations += out.report.iterations;
+            tsd.push(out.task_space_distance_cm);
         }
     }
     let p = |v: &[f64]| (percentile(v, 0.5), percentile(v, 0.99));
@@ -60,5 +67,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         print!(" {name} {a:.2}/{b:.2}");
     }
     println!(" ms (p50/p99); penetration max {:.2} mm", penetration.iter().cloned().fold(0.0, f64::max));
+    let n = stages[4].len();
+    println!(
+        "  task-space distance mean {:.3} cm; {:.0} LM iterations a solve; best start {:?}",
+        tsd.iter().sum::<f64>() / n as f64,
+        iterations as f64 / n as f64,
+        &best_start[..starts.min(16)]
+    );
     Ok(())
 }

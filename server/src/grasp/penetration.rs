@@ -322,19 +322,44 @@ impl Clearance {
     }
 }
 
-/// Exact clearance of the hand state in `kin` (no culling: every sphere is
-/// measured; not for the solver's hot loop).
+/// Exact clearance of the hand state in `kin`. A group's members are all at
+/// least its centre's distance less its reach from the scene (signed
+/// distance is 1-Lipschitz), so groups are measured nearest bound first and
+/// a group whose bound is no lower than the smallest clearance found so far
+/// is skipped whole: the same minimum as measuring every sphere, with about
+/// one query per primitive for the parts of the hand far from the tool.
 pub fn clearance(spheres: &HandSpheres, kin: &HandKinematics, scene: &Scene) -> Clearance {
-    let mut min = f64::INFINITY;
-    for (i, s) in spheres.spheres().iter().enumerate() {
-        let c = spheres.center_world(kin, i);
-        if let Some(tool) = scene.tool {
-            if let Some((sd, _)) = tool.signed_distance(&c, f64::INFINITY) {
-                min = min.min(sd - s.radius);
+    let mut bounds: Vec<(f64, usize)> = spheres
+        .groups()
+        .iter()
+        .enumerate()
+        .map(|(k, g)| {
+            let cg = kin.link_pose(g.link) * Point3::from(g.center_link);
+            let mut bound = f64::INFINITY;
+            if let Some((sd, _)) = scene.tool.and_then(|tool| tool.signed_distance(&cg, f64::INFINITY)) {
+                bound = sd - g.reach;
             }
+            if let Some(h) = scene.table_height_world {
+                bound = bound.min(cg.z - h - g.reach);
+            }
+            (bound, k)
+        })
+        .collect();
+    bounds.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut min = f64::INFINITY;
+    for (bound, k) in bounds {
+        if bound >= min {
+            break;
         }
-        if let Some(h) = scene.table_height_world {
-            min = min.min(c.z - h - s.radius);
+        for i in spheres.groups()[k].members.clone() {
+            let c = spheres.center_world(kin, i);
+            let r = spheres.spheres()[i].radius;
+            if let Some((sd, _)) = scene.tool.and_then(|tool| tool.signed_distance(&c, f64::INFINITY)) {
+                min = min.min(sd - r);
+            }
+            if let Some(h) = scene.table_height_world {
+                min = min.min(c.z - h - r);
+            }
         }
     }
     Clearance { min_clearance_m: min, penetration_m: (-min).max(0.0) }

@@ -81,6 +81,19 @@ pub struct SolveOptions {
     /// Skip the remaining starts once the weighted RMS keypoint error (with
     /// penetration counted in) is below this, millimetres.
     pub exact_fit_mm: f64,
+    /// Skip the remaining starts once this many have ended at the best cost
+    /// (within `agreement`): a minimum found again from another start is
+    /// taken as the one the remaining starts would find too. 0 runs every
+    /// start. Measured with `bench_grasp` on the test views (24 per
+    /// category) and on Table I: the warm start and the fitted-wrist start
+    /// agree on most transfers, and with every start run the task-space
+    /// distance came out the same to 0.001 cm at 5-10× the time (mug solve
+    /// p50 19.8 ms with 8 starts); the random starts matter where those two
+    /// end apart (one mug view in a few: the warm start alone gives 1.0 cm
+    /// mean instead of 0.49 and pierces 9 mm).
+    pub agreeing_starts: usize,
+    /// Relative cost difference under which two starts agree.
+    pub agreement: f64,
     pub penetration: PenetrationOptions,
 }
 
@@ -96,6 +109,8 @@ impl Default for SolveOptions {
             step_tolerance: 1e-10,
             relative_cost_tolerance: 1e-10,
             exact_fit_mm: 0.01,
+            agreeing_starts: 2,
+            agreement: 0.01,
             penetration: PenetrationOptions::default(),
         }
     }
@@ -130,6 +145,8 @@ pub struct GraspSolver {
     contacts: Vec<Contact>,
     contacts_trial: Vec<Contact>,
     point_jac: Matrix3xX<f64>,
+    /// Each start's final cost, for the agreement test.
+    start_costs: Vec<f64>,
 }
 
 /// Outcome of one start.
@@ -143,6 +160,7 @@ struct StartResult {
 impl GraspSolver {
     pub fn new(hand: &HandModel, options: SolveOptions) -> Self {
         let n = WRIST_DOF + hand.num_actuated();
+        let starts = options.starts;
         let na = hand.num_actuated();
         let spheres = HandSpheres::new(hand, options.penetration.sphere_spacing);
         let n_spheres = spheres.spheres().len();
@@ -167,6 +185,7 @@ impl GraspSolver {
             contacts: Vec::with_capacity(2 * n_spheres),
             contacts_trial: Vec::with_capacity(2 * n_spheres),
             point_jac: Matrix3xX::zeros(n),
+            start_costs: Vec::with_capacity(starts),
         }
     }
 
@@ -220,6 +239,9 @@ impl GraspSolver {
         let mut rng = ChaCha8Rng::seed_from_u64(self.options.seed);
         let mut report = SolveReport::default();
         let mut best: Option<StartResult> = None;
+        let mut costs = std::mem::take(&mut self.start_costs);
+        costs.clear();
+        costs.reserve(self.options.starts);
         for k in 0..self.options.starts.max(1) {
             let wrist0 = self.start(k, targets, warm_start, &mut rng);
             let pen = &self.options.penetration;
@@ -232,16 +254,23 @@ impl GraspSolver {
             };
             report.starts += 1;
             report.iterations += result.iterations;
+            costs.push(result.cost);
             if best.as_ref().is_none_or(|b| result.cost < b.cost) {
                 self.q_best.copy_from_slice(&self.q);
                 report.best_start = k;
                 report.converged = result.converged;
                 best = Some(result);
             }
-            if best.as_ref().is_some_and(|b| b.cost <= exact_cost) {
+            let best_cost = best.as_ref().map_or(f64::INFINITY, |b| b.cost);
+            if best_cost <= exact_cost {
+                break;
+            }
+            let agreeing = costs.iter().filter(|&&c| c <= best_cost * (1.0 + self.options.agreement)).count();
+            if self.options.agreeing_starts > 0 && agreeing >= self.options.agreeing_starts {
                 break;
             }
         }
+        self.start_costs = costs;
         let best = best.expect("at least one start ran");
         let grasp = Grasp::new(&self.hand, best.wrist, self.q_best.clone());
 

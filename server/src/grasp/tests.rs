@@ -205,7 +205,7 @@ fn joint_limits_are_respected() {
 #[test]
 fn unreachable_targets_return_the_best_grasp() {
     let hand = sih();
-    let mut solver = GraspSolver::new(&hand, SolveOptions::default());
+    let mut solver = GraspSolver::new(&hand, SolveOptions { agreeing_starts: 0, ..SolveOptions::default() });
     let truth = Grasp::new(&hand, Isometry3::identity(), vec![-0.5, -0.6, -0.7, -0.8, 0.4]);
     let kps = truth.keypoints_world(&hand);
     let c = kps.iter().map(|p| p.coords).sum::<Vector3<f64>>() / kps.len() as f64;
@@ -221,6 +221,14 @@ fn unreachable_targets_return_the_best_grasp() {
     assert!(report.residual_mm.mean > 5.0 && report.residual_mm.mean.is_finite());
     assert!(report.converged);
     assert_local_minimum(&hand, &grasp, &targets);
+
+    // Stopping once two starts agree: fewer starts, the same minimum.
+    solver.options_mut().agreeing_starts = 2;
+    let (agreed, agreed_report) = solver.solve(&targets, &warm, &Scene::default()).unwrap();
+    println!("agreeing starts: {} of {}", agreed_report.starts, solver.options().starts);
+    assert!(agreed_report.starts >= 2 && agreed_report.starts < report.starts);
+    let (all, some) = (grasp_cost(&hand, &grasp, &targets), grasp_cost(&hand, &agreed, &targets));
+    assert!(some <= all * (1.0 + solver.options().agreement), "cost {some} after agreement, {all} over all starts");
 }
 
 /// No small feasible move of one coordinate lowers the keypoint cost (a
@@ -954,4 +962,49 @@ fn pregrasp_search_clears_the_table_under_a_drill() {
         pre.grasp.actuated.clone(),
     );
     assert!(solver.clearance(&half, &scene).min_clearance_m >= opts.min_clearance_m);
+}
+
+/// The clearance skips groups by their centre's bound; it must still be the
+/// minimum over every sphere, touching or clear, tool or table nearest.
+#[test]
+fn clearance_is_the_minimum_over_every_sphere() {
+    let hand = sih();
+    let wrist =
+        Isometry3::from_parts(Translation3::new(0.2, -0.1, 0.4), UnitQuaternion::from_euler_angles(0.4, 0.2, -0.7));
+    let (truth, mesh, pose) = cylinder_scene(&hand, wrist, 0.006);
+    let tool = ToolCollider::new(&mesh, pose).unwrap();
+    let spheres = HandSpheres::new(&hand, 0.5);
+    let mut kin = HandKinematics::new(&hand);
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let mut pruned_touching = 0;
+    for trial in 0..60 {
+        // Some backed off along the palm normal with the hand open: clear.
+        let mut g = perturbed(&hand, &truth, &mut rng, 0.01, 0.2, 0.3);
+        if trial % 3 == 0 {
+            let back =
+                g.wrist_pose_world.rotation * hand.palm_normal().into_inner() * (-0.02 - 0.06 * rng.random::<f64>());
+            let wrist = Isometry3::from_parts(
+                Translation3::from(g.wrist_pose_world.translation.vector + back),
+                g.wrist_pose_world.rotation,
+            );
+            g = Grasp::new(&hand, wrist, hand.open_hand().to_vec());
+        }
+        let table = (trial % 2 == 0).then(|| pose.translation.z - 0.03 - 0.05 * rng.random::<f64>());
+        let scene = Scene { tool: Some(&tool), table_height_world: table };
+        kin.update(&hand, &g.wrist_pose_world, &g.actuated);
+        let every = (0..spheres.spheres().len())
+            .map(|i| {
+                let c = spheres.center_world(&kin, i);
+                let r = spheres.spheres()[i].radius;
+                let sd = tool.signed_distance(&c, f64::INFINITY).unwrap().0 - r;
+                table.map_or(sd, |h| sd.min(c.z - h - r))
+            })
+            .fold(f64::INFINITY, f64::min);
+        let c = super::penetration::clearance(&spheres, &kin, &scene);
+        assert_eq!(c.min_clearance_m, every, "trial {trial}");
+        pruned_touching += (every < 0.0) as usize;
+    }
+    assert!(pruned_touching > 5 && pruned_touching < 55, "{pruned_touching} of 60 touching: vary the poses");
+    let empty = super::penetration::clearance(&spheres, &kin, &Scene::default());
+    assert_eq!(empty.min_clearance_m, f64::INFINITY);
 }
