@@ -86,6 +86,9 @@ pub struct EvalGraspArgs {
     /// Solve without the penetration term (keypoints only, as eq. 6 alone).
     #[arg(long)]
     no_penetration: bool,
+    /// Clearance the penetration term keeps from the registered shape, mm.
+    #[arg(long, default_value_t = 1e3 * SolveOptions::default().penetration.margin_m)]
+    margin_mm: f64,
     /// A shape-space artefact to evaluate (default: the category's built-in
     /// space, cached in assets/spaces and built there when missing).
     #[arg(long)]
@@ -431,6 +434,7 @@ pub fn run_eval(a: EvalGraspArgs) -> CliResult {
     let training: Vec<&tools::Instance> = family.iter().filter(|i| i.split == Split::Train).collect();
     let mut solve = SolveOptions { starts: a.starts.max(1), ..SolveOptions::default() };
     solve.penetration.enabled = !a.no_penetration;
+    solve.penetration.margin_m = 1e-3 * a.margin_mm;
     // A demonstration made without a table is evaluated without one.
     let opts = GraspEvalOptions { solve, repeats: a.repeats, table: demo.table && !a.no_table };
     let bar = progress_bar(training.len() as u64, "instances");

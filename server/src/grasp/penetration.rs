@@ -118,19 +118,42 @@ impl HandSpheres {
     /// table, for the state in `kin` (two entries if it is near both). A
     /// group is skipped whole when its centre is farther from the scene than
     /// its reach plus the margin: signed distance is 1-Lipschitz, so no member
-    /// can then be near. `out` is not cleared; with capacity for two entries
-    /// per sphere it never reallocates.
-    pub fn collect_contacts(&self, kin: &HandKinematics, scene: &Scene, margin: f64, out: &mut Vec<Contact>) {
-        for g in &self.groups {
+    /// can then be near. `bounds` remembers each group centre's and each
+    /// sphere's last distance to the tool, so that one that has moved less
+    /// than its remaining room is skipped without a query (it must hold
+    /// bounds for this scene's tool, or be fresh). `out` is not cleared; with capacity
+    /// for two entries per sphere it never reallocates.
+    pub fn collect_contacts(
+        &self,
+        kin: &HandKinematics,
+        scene: &Scene,
+        margin: f64,
+        bounds: &mut DistanceBounds,
+        out: &mut Vec<Contact>,
+    ) {
+        let first_sphere = self.groups.len();
+        bounds.fit(first_sphere + self.spheres.len());
+        for (k, g) in self.groups.iter().enumerate() {
             let cg = kin.link_pose(g.link) * Point3::from(g.center_link);
             let clear = g.reach + margin;
             if let Some(tool) = scene.tool {
-                let near = tool.signed_distance(&cg, clear + 1e-6).is_some_and(|(sd, _)| sd < clear);
+                let near = bounds.lower_bound(k, &cg) < clear && {
+                    let (measured, culled) = tool.signed_distance_and_bound(&cg, clear + 1e-6);
+                    let sd = measured.map_or(f64::INFINITY, |(sd, _)| sd);
+                    bounds.set(k, cg, sd.min(culled));
+                    sd < clear
+                };
                 if near {
                     for i in g.members.clone() {
                         let c = self.center_world(kin, i);
                         let r = self.spheres[i].radius;
-                        if let Some((sd, n)) = tool.signed_distance(&c, r + margin + 1e-6) {
+                        if bounds.lower_bound(first_sphere + i, &c) >= r + margin {
+                            continue;
+                        }
+                        let (measured, culled) = tool.signed_distance_and_bound(&c, r + margin + 1e-6);
+                        let sd = measured.map_or(f64::INFINITY, |(sd, _)| sd);
+                        bounds.set(first_sphere + i, c, sd.min(culled));
+                        if let Some((sd, n)) = measured {
                             let residual = sd - r - margin;
                             if residual < 0.0 {
                                 out.push(Contact { sphere: i, center_world: c, residual, normal_world: n });
@@ -157,6 +180,52 @@ impl HandSpheres {
     pub fn center_world(&self, kin: &HandKinematics, i: usize) -> Point3<f64> {
         let s = &self.spheres[i];
         kin.link_pose(s.link) * Point3::from(s.center_link)
+    }
+}
+
+/// Lower bounds on the signed distance of the sphere groups' centres and of
+/// the spheres' centres to one tool: the distance last measured at a point,
+/// less how far the centre has moved from it (signed distance is
+/// 1-Lipschitz). An optimiser's small steps leave a sphere a few
+/// millimetres from the tool unqueried for many iterations.
+#[derive(Clone, Debug, Default)]
+pub struct DistanceBounds {
+    /// Groups first, then spheres: where the centre was measured, and the
+    /// distance there (NaN: never).
+    at: Vec<(Point3<f64>, f64)>,
+}
+
+impl DistanceBounds {
+    /// No bounds yet, sized for `spheres`.
+    pub fn new(spheres: &HandSpheres) -> Self {
+        Self { at: vec![(Point3::origin(), f64::NAN); spheres.groups.len() + spheres.spheres.len()] }
+    }
+
+    /// Forgets every bound (a new tool or pose).
+    pub fn clear(&mut self) {
+        for a in &mut self.at {
+            a.1 = f64::NAN;
+        }
+    }
+
+    fn fit(&mut self, len: usize) {
+        if self.at.len() != len {
+            self.at = vec![(Point3::origin(), f64::NAN); len];
+        }
+    }
+
+    /// −∞ when entry `k` was never measured.
+    fn lower_bound(&self, k: usize, centre: &Point3<f64>) -> f64 {
+        let (p, sd) = self.at[k];
+        if sd.is_nan() {
+            f64::NEG_INFINITY
+        } else {
+            sd - (centre - p).norm()
+        }
+    }
+
+    fn set(&mut self, k: usize, centre: Point3<f64>, sd: f64) {
+        self.at[k] = (centre, sd);
     }
 }
 
@@ -256,12 +325,25 @@ impl ToolCollider {
     /// certainly more than `max_distance` outside (bounding-box cull; a point
     /// inside a part's box is always queried, so deep penetration is seen).
     pub fn signed_distance(&self, p_world: &Point3<f64>, max_distance: f64) -> Option<(f64, Vector3<f64>)> {
+        self.signed_distance_and_bound(p_world, max_distance).0
+    }
+
+    /// [`Self::signed_distance`], and a lower bound of the distance to the
+    /// parts it culled (+∞ when none was): the point's distance to the
+    /// nearest culled part's box.
+    pub fn signed_distance_and_bound(
+        &self,
+        p_world: &Point3<f64>,
+        max_distance: f64,
+    ) -> (Option<(f64, Vector3<f64>)>, f64) {
         let p = self.pose_world.inverse_transform_point(p_world).coords;
         let pf = parry3d::math::Vector::new(p.x as f32, p.y as f32, p.z as f32);
         let mut best: Option<(f64, Vector3<f64>)> = None;
+        let mut culled = f64::INFINITY;
         for part in &self.parts {
             let outside = (part.lo - p).sup(&(p - part.hi)).sup(&Vector3::zeros()).norm();
             if outside > max_distance {
+                culled = culled.min(outside);
                 continue;
             }
             let (proj, (tri, _)) = part.mesh.project_local_point_and_get_location(pf, false);
@@ -288,7 +370,7 @@ impl ToolCollider {
                 best = Some((sd, grad));
             }
         }
-        best.map(|(sd, g)| (sd, self.pose_world.rotation * g))
+        (best.map(|(sd, g)| (sd, self.pose_world.rotation * g)), culled)
     }
 }
 
@@ -329,25 +411,32 @@ impl Clearance {
 /// is skipped whole: the same minimum as measuring every sphere, with about
 /// one query per primitive for the parts of the hand far from the tool.
 pub fn clearance(spheres: &HandSpheres, kin: &HandKinematics, scene: &Scene) -> Clearance {
-    let mut bounds: Vec<(f64, usize)> = spheres
-        .groups()
-        .iter()
-        .enumerate()
-        .map(|(k, g)| {
-            let cg = kin.link_pose(g.link) * Point3::from(g.center_link);
-            let mut bound = f64::INFINITY;
-            if let Some((sd, _)) = scene.tool.and_then(|tool| tool.signed_distance(&cg, f64::INFINITY)) {
-                bound = sd - g.reach;
-            }
-            if let Some(h) = scene.table_height_world {
-                bound = bound.min(cg.z - h - g.reach);
-            }
-            (bound, k)
-        })
-        .collect();
-    bounds.sort_by(|a, b| a.0.total_cmp(&b.0));
+    clearance_with(spheres, kin, scene, &mut Vec::new())
+}
+
+/// [`clearance`] with the caller's buffer for the groups' bounds (no
+/// allocation once it has room for one entry per group).
+pub fn clearance_with(
+    spheres: &HandSpheres,
+    kin: &HandKinematics,
+    scene: &Scene,
+    bounds: &mut Vec<(f64, usize)>,
+) -> Clearance {
+    bounds.clear();
+    bounds.extend(spheres.groups().iter().enumerate().map(|(k, g)| {
+        let cg = kin.link_pose(g.link) * Point3::from(g.center_link);
+        let mut bound = f64::INFINITY;
+        if let Some((sd, _)) = scene.tool.and_then(|tool| tool.signed_distance(&cg, f64::INFINITY)) {
+            bound = sd - g.reach;
+        }
+        if let Some(h) = scene.table_height_world {
+            bound = bound.min(cg.z - h - g.reach);
+        }
+        (bound, k)
+    }));
+    bounds.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
     let mut min = f64::INFINITY;
-    for (bound, k) in bounds {
+    for &(bound, k) in bounds.iter() {
         if bound >= min {
             break;
         }

@@ -26,7 +26,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
 use super::linalg::{cholesky_solve_in_place, fit_rigid};
-use super::penetration::{clearance, Clearance, Contact, HandSpheres, Scene};
+use super::penetration::{clearance_with, Clearance, Contact, DistanceBounds, HandSpheres, Scene};
 use super::{residual_stats, Grasp, GraspError, GraspTargets, SolveReport};
 use crate::hand::{perturb_wrist, HandKinematics, HandModel, WRIST_DOF};
 
@@ -147,6 +147,10 @@ pub struct GraspSolver {
     point_jac: Matrix3xX<f64>,
     /// Each start's final cost, for the agreement test.
     start_costs: Vec<f64>,
+    /// Distance bounds of the spheres and their groups for the scene being solved.
+    bounds: DistanceBounds,
+    /// The clearance's buffer for the groups in order of their bounds.
+    group_order: Vec<(f64, usize)>,
 }
 
 /// Outcome of one start.
@@ -164,6 +168,8 @@ impl GraspSolver {
         let na = hand.num_actuated();
         let spheres = HandSpheres::new(hand, options.penetration.sphere_spacing);
         let n_spheres = spheres.spheres().len();
+        let bounds = DistanceBounds::new(&spheres);
+        let n_groups = spheres.groups().len();
         Self {
             spheres,
             kin: HandKinematics::new(hand),
@@ -186,6 +192,8 @@ impl GraspSolver {
             contacts_trial: Vec::with_capacity(2 * n_spheres),
             point_jac: Matrix3xX::zeros(n),
             start_costs: Vec::with_capacity(starts),
+            bounds,
+            group_order: Vec::with_capacity(n_groups),
         }
     }
 
@@ -206,7 +214,7 @@ impl GraspSolver {
     /// Exact clearance of `grasp` to `scene` with this solver's sphere cover.
     pub fn clearance(&mut self, grasp: &Grasp, scene: &Scene) -> Clearance {
         self.kin.update(&self.hand, &grasp.wrist_pose_world, &grasp.actuated);
-        clearance(&self.spheres, &self.kin, scene)
+        clearance_with(&self.spheres, &self.kin, scene, &mut self.group_order)
     }
 
     /// A start without a demonstration: the open hand, its wrist fitted
@@ -238,6 +246,7 @@ impl GraspSolver {
 
         let mut rng = ChaCha8Rng::seed_from_u64(self.options.seed);
         let mut report = SolveReport::default();
+        self.bounds.clear();
         let mut best: Option<StartResult> = None;
         let mut costs = std::mem::take(&mut self.start_costs);
         costs.clear();
@@ -277,7 +286,8 @@ impl GraspSolver {
         self.kin.update(&self.hand, &grasp.wrist_pose_world, &grasp.actuated);
         report.residual_mm = residual_stats(self.kin.keypoints(), &targets.keypoints_world);
         if !scene.is_empty() {
-            report.penetration_mm = 1e3 * clearance(&self.spheres, &self.kin, scene).penetration_m;
+            report.penetration_mm =
+                1e3 * clearance_with(&self.spheres, &self.kin, scene, &mut self.group_order).penetration_m;
         }
         report.elapsed_ms = 1e3 * t0.elapsed().as_secs_f64();
         Ok((grasp, report))
@@ -474,7 +484,7 @@ impl GraspSolver {
         self.contacts_trial.clear();
         let pen = &self.options.penetration;
         if pen.enabled && !scene.is_empty() {
-            self.spheres.collect_contacts(&self.kin, scene, pen.margin_m, &mut self.contacts_trial);
+            self.spheres.collect_contacts(&self.kin, scene, pen.margin_m, &mut self.bounds, &mut self.contacts_trial);
             sum += pen.weight * self.contacts_trial.iter().map(|c| c.residual * c.residual).sum::<f64>();
         }
         0.5 * sum

@@ -1008,3 +1008,38 @@ fn clearance_is_the_minimum_over_every_sphere() {
     let empty = super::penetration::clearance(&spheres, &kin, &Scene::default());
     assert_eq!(empty.min_clearance_m, f64::INFINITY);
 }
+
+/// Contacts found with remembered distance bounds are those found by
+/// querying every near sphere afresh, step after small step, on tools of
+/// several parts (a mug's body and handle, a drill's: one part is often
+/// culled while another is measured).
+#[test]
+fn remembered_bounds_find_the_same_contacts() {
+    use super::penetration::DistanceBounds;
+    use crate::tools::{self, Category, Split};
+    let hand = sih();
+    for category in [Category::Mug, Category::Drill] {
+        let canonical = tools::family(category).unwrap().into_iter().find(|i| i.split == Split::Canonical).unwrap();
+        assert!(canonical.mesh.part_ranges().len() > 1);
+        let tool = ToolCollider::new(&canonical.mesh, Isometry3::identity()).unwrap();
+        let scene = Scene { tool: Some(&tool), table_height_world: Some(0.0) };
+        let demo = Demonstration::builtin(category).unwrap().grasp_at(&hand, &Isometry3::identity()).unwrap();
+        let spheres = HandSpheres::new(&hand, 0.5);
+        let mut kin = HandKinematics::new(&hand);
+        let mut remembered = DistanceBounds::new(&spheres);
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let mut g = demo.clone();
+        let (mut with_contacts, mut steps) = (0, 0);
+        for _ in 0..300 {
+            g = perturbed(&hand, &g, &mut rng, 0.002, 0.02, 0.02);
+            kin.update(&hand, &g.wrist_pose_world, &g.actuated);
+            let (mut a, mut b) = (Vec::new(), Vec::new());
+            spheres.collect_contacts(&kin, &scene, 0.001, &mut remembered, &mut a);
+            spheres.collect_contacts(&kin, &scene, 0.001, &mut DistanceBounds::new(&spheres), &mut b);
+            assert_eq!(a, b, "step {steps}");
+            with_contacts += !a.is_empty() as usize;
+            steps += 1;
+        }
+        assert!(with_contacts > 30 && with_contacts < 270, "{with_contacts} of {steps} steps touch: vary the walk");
+    }
+}
