@@ -130,7 +130,8 @@ impl Config {
         Ok(())
     }
 
-    /// Worker threads to start.
+    /// Worker threads to start (with `workers = 0`, the cores available:
+    /// reading cgroup files each call, so call it once).
     pub fn worker_count(&self) -> usize {
         match self.workers {
             0 => std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
