@@ -111,6 +111,9 @@ enum BenchMethod {
     Register,
     /// Health: an empty request, the transport alone.
     Health,
+    /// Grasp a cloud of --points points: registration, grasp and pre-grasp
+    /// in one round trip (no Unix-socket baseline).
+    Grasp,
 }
 
 #[derive(clap::Args)]
@@ -426,6 +429,7 @@ fn bench(cli: &Cli, b: &BenchArgs, opts: ClientOptions) -> Result<(), Failure> {
         match b.method {
             BenchMethod::Register => drop(c.register_with(&b.category, &cloud, &co, timeout)?),
             BenchMethod::Health => drop(c.health()?),
+            BenchMethod::Grasp => drop(c.grasp_with(&b.category, &cloud, &co, timeout)?),
         }
     }
     let mut shm = Samples::default();
@@ -433,6 +437,7 @@ fn bench(cli: &Cli, b: &BenchArgs, opts: ClientOptions) -> Result<(), Failure> {
         match b.method {
             BenchMethod::Register => drop(c.register_with(&b.category, &cloud, &co, timeout)?),
             BenchMethod::Health => drop(c.health()?),
+            BenchMethod::Grasp => drop(c.grasp_with(&b.category, &cloud, &co, timeout)?),
         }
         let t = c.last_call();
         shm.push(t.rtt_ns, t.fill_ns, t.server_ns, t.compute_ns);
@@ -459,8 +464,9 @@ fn bench(cli: &Cli, b: &BenchArgs, opts: ClientOptions) -> Result<(), Failure> {
     v["method"] = serde_json::json!(match b.method {
         BenchMethod::Register => "register",
         BenchMethod::Health => "health",
+        BenchMethod::Grasp => "grasp",
     });
-    v["points"] = serde_json::json!(if b.method == BenchMethod::Register { b.points } else { 0 });
+    v["points"] = serde_json::json!(if b.method == BenchMethod::Health { 0 } else { b.points });
     v["requests"] = serde_json::json!(b.requests);
     v["category"] = serde_json::json!(b.category);
     v["daemon_waiting"] = serde_json::json!(health.waiting);
@@ -485,6 +491,7 @@ fn bench(cli: &Cli, b: &BenchArgs, opts: ClientOptions) -> Result<(), Failure> {
         let what = match b.method {
             BenchMethod::Register => format!("register, {} points", b.points),
             BenchMethod::Health => "health".to_owned(),
+            BenchMethod::Grasp => format!("grasp, {} points", b.points),
         };
         println!(
             "{what}, {} requests, daemon {} / client {}: rtt p50 {:.1} µs p99 {:.1} µs, engine p50 {:.1} µs, overhead p50 {:.1} µs p99 {:.1} µs (excluding the cloud copy: p50 {:.1} µs)",
