@@ -5,12 +5,12 @@
 #[path = "common/views.rs"]
 mod views;
 
+use graspd::eval::grasp::percentile;
 use graspd::grasp::transfer::{solve_transferred, TransferModel, TransferredTool};
 use graspd::grasp::{Demonstration, GraspSolver, PreGraspOptions, SolveOptions};
 use graspd::hand::HandModel;
 use graspd::shape::{builtin, RegisterOptions, Registrar};
 use graspd::tools::{self, Category, Split};
-use views::percentile;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();

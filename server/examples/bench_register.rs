@@ -6,9 +6,9 @@
 #[path = "common/views.rs"]
 mod views;
 
+use graspd::eval::grasp::percentile;
 use graspd::shape::{builtin, RegisterOptions, Registrar};
 use graspd::tools::Category;
-use views::percentile;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();

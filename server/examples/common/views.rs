@@ -34,10 +34,3 @@ pub fn test_views(category: Category) -> Result<Vec<View>, Box<dyn std::error::E
     }
     Ok(views)
 }
-
-/// Nearest-rank percentile (q in [0, 1]) of a non-empty sample.
-pub fn percentile(v: &[f64], q: f64) -> f64 {
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    s[((s.len() - 1) as f64 * q).round() as usize]
-}
