@@ -25,14 +25,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         tools::family(category)?.into_iter().find(|i| i.split == Split::Canonical).ok_or("no canonical")?.mesh;
     let views = views::test_views(category)?;
     let model = TransferModel::new(&registrar.space, &keypoints, &canonical);
-    eprintln!(
-        "mesh {} vertices {} triangles; space {} modes {} centres {} surface",
-        canonical.vertices.len(),
-        canonical.triangles.len(),
-        registrar.space.modes(),
-        registrar.space.centres.len(),
-        registrar.space.surface.len()
-    );
     let mut stages: [Vec<f64>; 5] = Default::default();
     let mut penetration = Vec::new();
     let mut tsd = Vec::new();
