@@ -137,23 +137,11 @@ impl HandSpheres {
             let cg = kin.link_pose(g.link) * Point3::from(g.center_link);
             let clear = g.reach + margin;
             if let Some(tool) = scene.tool {
-                let near = bounds.lower_bound(k, &cg) < clear && {
-                    let (measured, culled) = tool.signed_distance_and_bound(&cg, clear + 1e-6);
-                    let sd = measured.map_or(f64::INFINITY, |(sd, _)| sd);
-                    bounds.set(k, cg, sd.min(culled));
-                    sd < clear
-                };
-                if near {
+                if bounds.closer_than(k, cg, clear, tool).is_some() {
                     for i in g.members.clone() {
                         let c = self.center_world(kin, i);
                         let r = self.spheres[i].radius;
-                        if bounds.lower_bound(first_sphere + i, &c) >= r + margin {
-                            continue;
-                        }
-                        let (measured, culled) = tool.signed_distance_and_bound(&c, r + margin + 1e-6);
-                        let sd = measured.map_or(f64::INFINITY, |(sd, _)| sd);
-                        bounds.set(first_sphere + i, c, sd.min(culled));
-                        if let Some((sd, n)) = measured {
+                        if let Some((sd, n)) = bounds.closer_than(first_sphere + i, c, r + margin, tool) {
                             let residual = sd - r - margin;
                             if residual < 0.0 {
                                 out.push(Contact { sphere: i, center_world: c, residual, normal_world: n });
@@ -214,18 +202,24 @@ impl DistanceBounds {
         }
     }
 
-    /// −∞ when entry `k` was never measured.
-    fn lower_bound(&self, k: usize, centre: &Point3<f64>) -> f64 {
+    /// The tool's signed distance and gradient at `centre` (entry `k`) when
+    /// it is under `clear`; None when it is not, without a query while
+    /// entry `k`'s bound (−∞ when never measured) shows it cannot be.
+    fn closer_than(
+        &mut self,
+        k: usize,
+        centre: Point3<f64>,
+        clear: f64,
+        tool: &ToolCollider,
+    ) -> Option<(f64, Vector3<f64>)> {
         let (p, sd) = self.at[k];
-        if sd.is_nan() {
-            f64::NEG_INFINITY
-        } else {
-            sd - (centre - p).norm()
+        if !sd.is_nan() && sd - (centre - p).norm() >= clear {
+            return None;
         }
-    }
-
-    fn set(&mut self, k: usize, centre: Point3<f64>, sd: f64) {
-        self.at[k] = (centre, sd);
+        let (measured, culled) = tool.signed_distance_and_bound(&centre, clear + 1e-6);
+        let sd = measured.map_or(f64::INFINITY, |(sd, _)| sd);
+        self.at[k] = (centre, sd.min(culled));
+        measured.filter(|&(sd, _)| sd < clear)
     }
 }
 

@@ -540,8 +540,7 @@ impl Registrar {
     /// it (a demonstration's hand keypoints), moved onto the registered tool.
     pub fn transfer(&self, reg: &Registration, canonical_points: &[P3]) -> Vec<P3> {
         if reg.latent.is_empty() {
-            let pose = self.pose_of(reg);
-            return canonical_points.iter().map(|z| pose.apply(&self.space.norm.forward(z))).collect();
+            return self.posed(reg, canonical_points);
         }
         self.transfer_anchored(reg, &self.space.anchored_model(canonical_points))
     }
@@ -549,15 +548,16 @@ impl Registrar {
     /// As [`Self::transfer`], for points whose [`AnchoredModel`] was made
     /// beforehand (once, for points carried onto every registered tool).
     pub fn transfer_anchored(&self, reg: &Registration, model: &AnchoredModel) -> Vec<P3> {
+        if reg.latent.is_empty() {
+            return self.posed(reg, model.canonical());
+        }
+        self.posed(reg, &model.evaluate(&reg.latent))
+    }
+
+    /// Canonical-frame points (metres) in the cloud's frame by the registered pose.
+    fn posed(&self, reg: &Registration, canonical: &[P3]) -> Vec<P3> {
         let pose = self.pose_of(reg);
-        let evaluated;
-        let deformed = if reg.latent.is_empty() {
-            model.canonical()
-        } else {
-            evaluated = model.evaluate(&reg.latent);
-            &evaluated
-        };
-        deformed.iter().map(|z| pose.apply(&self.space.norm.forward(z))).collect()
+        canonical.iter().map(|z| pose.apply(&self.space.norm.forward(z))).collect()
     }
 
     /// A registration without latent (the `canonical` baseline) uses the undeformed models.

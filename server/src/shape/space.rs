@@ -581,12 +581,6 @@ struct OffSurface {
 }
 
 impl AnchoredModel {
-    pub fn len(&self) -> usize {
-        self.canonical.len()
-    }
-    pub fn is_empty(&self) -> bool {
-        self.canonical.is_empty()
-    }
     /// The points undeformed, canonical frame, metres.
     pub fn canonical(&self) -> &[P3] {
         &self.canonical
