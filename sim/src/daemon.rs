@@ -15,11 +15,12 @@
 
 use std::time::{Duration, Instant};
 
-use graspd::grasp::transfer::{solve_transferred, Similarity, TransferModel, TransferredTool};
-use graspd::grasp::{Demonstration, Grasp, GraspSolver, PreGraspOptions, SolveOptions};
+use graspd::grasp::transfer::{solve_transferred, Similarity, TransferredTool};
+use graspd::grasp::{Grasp, GraspSolver, PreGraspOptions, SolveOptions};
 use graspd::hand::HandModel;
+use graspd::service::engine::GraspAssets;
 use graspd::shape::{RegisterOptions, Registrar, ShapeSpace};
-use graspd::tools::{Category, Split};
+use graspd::tools::Category;
 use graspd_client::{Client, ClientOptions, CloudOptions, StatusCode, Table};
 use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
 
@@ -90,8 +91,8 @@ enum Backend {
 /// The daemon's Grasp done in this process (graspd's `service::engine`).
 struct EngineBackend {
     registrar: Registrar,
-    demo: Demonstration,
-    transfer: TransferModel,
+    /// The demonstration and its transfer model, as the daemon loads them.
+    assets: GraspAssets,
 }
 
 /// A connected client of one daemon (or the engine in-process), with the camera and frame it uses.
@@ -151,17 +152,8 @@ impl DaemonGrasper {
         camera: SceneCamera,
         lab: LabFrame,
     ) -> Result<Self, SimError> {
-        let err = |e: &dyn std::fmt::Display| SimError::Plan { reason: e.to_string() };
-        let demo = Demonstration::builtin(category).map_err(|e| err(&e))?;
-        let demo_keypoints = demo.keypoints(hand).map_err(|e| err(&e))?;
-        let canonical_mesh = graspd::tools::family(category)
-            .map_err(|e| err(&e))?
-            .into_iter()
-            .find(|i| i.split == Split::Canonical)
-            .ok_or_else(|| err(&"the family has no canonical instance"))?
-            .mesh;
-        let transfer = TransferModel::new(&space, &demo_keypoints, &canonical_mesh);
-        let backend = EngineBackend { registrar: Registrar::new(space), demo, transfer };
+        let assets = GraspAssets::load(category, hand, &space).map_err(|reason| SimError::Plan { reason })?;
+        let backend = EngineBackend { registrar: Registrar::new(space), assets };
         Ok(Self {
             backend: Backend::Engine(Box::new(backend)),
             options: DaemonOptions { prefix: "in-process".into(), ..DaemonOptions::default() },
@@ -277,14 +269,14 @@ impl EngineBackend {
             ..RegisterOptions::default()
         };
         let reg = self.registrar.register(&points, &register).map_err(|e| err("cannot register the cloud", &e))?;
-        let tool = TransferredTool::from_registration(&self.registrar, &reg, &self.transfer)
+        let tool = TransferredTool::from_registration(&self.registrar, &reg, &self.assets.transfer)
             .map_err(|e| err("cannot carry the demonstration onto the registered shape", &e))?;
         let table_z = match opts.table {
             Some(Table::At(z)) => Some(z as f64),
             _ => None,
         };
         let mut solver = GraspSolver::new(hand, SolveOptions { seed: opts.seed, ..SolveOptions::default() });
-        let out = solve_transferred(&mut solver, &self.demo, &tool, table_z, &PreGraspOptions::default())
+        let out = solve_transferred(&mut solver, &self.assets.demo, &tool, table_z, &PreGraspOptions::default())
             .map_err(|e| err("cannot solve the grasp", &e))?;
         let carry = |g: &Grasp| Grasp::new(hand, tool_from_lab * g.wrist_pose_world, g.actuated.clone());
         let pose = Similarity::of_registration(&reg);

@@ -234,6 +234,9 @@ pub struct GraspPlanner {
     demo: Demonstration,
     space: ShapeSpace,
     solver: GraspSolver,
+    /// The demonstration and canonical mesh as models of the latent, made on
+    /// the first transferred plan and kept for the category's other tools.
+    transfer: Option<TransferModel>,
     pregrasp: PreGraspOptions,
     start: StartMode,
     daemon: Option<DaemonGrasper>,
@@ -257,6 +260,7 @@ impl GraspPlanner {
             demo,
             space,
             solver,
+            transfer: None,
             pregrasp: PreGraspOptions::default(),
             start: StartMode::PreGrasp,
             daemon: None,
@@ -323,10 +327,13 @@ impl GraspPlanner {
                 format!("`{}` is not a training instance of the {} shape space", instance.name, self.space.category)
             },
         })?;
-        let keypoints = self.demo.keypoints(hand).map_err(engine_error)?;
-        let canonical = self.canonical_instance()?;
-        let model = TransferModel::new(&self.space, &keypoints, &canonical.mesh);
-        let tool = TransferredTool::from_latent(&model, &self.space.train_latents[k]).map_err(engine_error)?;
+        if self.transfer.is_none() {
+            let keypoints = self.demo.keypoints(hand).map_err(engine_error)?;
+            let canonical = self.canonical_instance()?;
+            self.transfer = Some(TransferModel::new(&self.space, &keypoints, &canonical.mesh));
+        }
+        let model = self.transfer.as_ref().expect("made above");
+        let tool = TransferredTool::from_latent(model, &self.space.train_latents[k]).map_err(engine_error)?;
         // As `graspd eval grasp`: the table under the registered shape.
         let table = self.demo.table.then(|| tool.lowest_z());
         let out =

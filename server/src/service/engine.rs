@@ -113,7 +113,7 @@ impl Engine {
             info.canonical_frame = proto::str_to_text(category.canonical_frame());
             let registrar = Registrar::new(space);
             let grasp = match &hand {
-                Ok(h) => grasp_assets(category, h, &registrar.space),
+                Ok(h) => GraspAssets::load(category, h, &registrar.space),
                 Err(e) => Err(e.clone()),
             };
             if let Err(e) = &grasp {
@@ -237,17 +237,21 @@ impl Engine {
     }
 }
 
-fn grasp_assets(category: Category, hand: &HandModel, space: &ShapeSpace) -> Result<GraspAssets, String> {
-    let demo = Demonstration::builtin(category).map_err(|e| format!("demonstration: {e}"))?;
-    let demo_keypoints = demo.keypoints(hand).map_err(|e| format!("demonstration: {e}"))?;
-    let canonical_mesh = crate::tools::family(category)
-        .map_err(|e| e.to_string())?
-        .into_iter()
-        .find(|i| i.split == Split::Canonical)
-        .ok_or("the family has no canonical instance")?
-        .mesh;
-    let transfer = TransferModel::new(space, &demo_keypoints, &canonical_mesh);
-    Ok(GraspAssets { demo, transfer })
+impl GraspAssets {
+    /// The category's bundled demonstration for `hand`, carried by `space`
+    /// (the category's shape space). Err: why Grasp cannot be served.
+    pub fn load(category: Category, hand: &HandModel, space: &ShapeSpace) -> Result<Self, String> {
+        let demo = Demonstration::builtin(category).map_err(|e| format!("demonstration: {e}"))?;
+        let demo_keypoints = demo.keypoints(hand).map_err(|e| format!("demonstration: {e}"))?;
+        let canonical_mesh = crate::tools::family(category)
+            .map_err(|e| e.to_string())?
+            .into_iter()
+            .find(|i| i.split == Split::Canonical)
+            .ok_or("the family has no canonical instance")?
+            .mesh;
+        let transfer = TransferModel::new(space, &demo_keypoints, &canonical_mesh);
+        Ok(GraspAssets { demo, transfer })
+    }
 }
 
 fn hand_to_wire(g: &crate::grasp::Grasp) -> proto::HandConfiguration {
