@@ -241,6 +241,13 @@ impl GraspSolver {
         if scene.table_height_world.is_some_and(|h| !h.is_finite()) {
             return Err(GraspError::NonFinite { what: "table height" });
         }
+        let pen = &self.options.penetration;
+        // A NaN here would silently switch the term off (every comparison false).
+        for (what, v) in [("penetration margin (m)", pen.margin_m), ("penetration weight", pen.weight)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(GraspError::InvalidOption { what, reason: format!("{v}: must be finite and ≥ 0") });
+            }
+        }
         let weight_sum: f64 = targets.weights.iter().sum();
         let exact_cost = 0.5 * weight_sum * (1e-3 * self.options.exact_fit_mm).powi(2);
 

@@ -1043,3 +1043,20 @@ fn remembered_bounds_find_the_same_contacts() {
         assert!(with_contacts > 30 && with_contacts < 270, "{with_contacts} of {steps} steps touch: vary the walk");
     }
 }
+
+/// A margin or weight that is not a finite non-negative number is refused:
+/// NaN would otherwise switch the penetration term off without a word.
+#[test]
+fn bad_penetration_options_are_refused() {
+    let hand = sih();
+    let truth = Grasp::new(&hand, Isometry3::identity(), vec![-0.5, -0.6, -0.7, -0.8, 0.4]);
+    let targets = GraspTargets::uniform(truth.keypoints_world(&hand));
+    for (margin, weight) in [(f64::NAN, 100.0), (-0.001, 100.0), (0.0, f64::INFINITY), (0.0, -1.0)] {
+        let mut opts = SolveOptions::default();
+        opts.penetration.margin_m = margin;
+        opts.penetration.weight = weight;
+        let mut solver = GraspSolver::new(&hand, opts);
+        let err = solver.solve(&targets, &truth, &Scene::default()).unwrap_err();
+        assert!(matches!(err, GraspError::InvalidOption { .. }), "margin {margin}, weight {weight}: {err}");
+    }
+}
