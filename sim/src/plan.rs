@@ -223,7 +223,26 @@ pub struct GraspInfo {
     pub registered_offset_m: Option<f64>,
     pub registered_turn_rad: Option<f64>,
     pub registered_scale: Option<f64>,
+    /// From a camera view of a training tool only: how far the generalised
+    /// demonstration the grasp was solved for lies from the one through the
+    /// tool's own latent at its true pose (what `inprocess` solves for), mm.
+    pub target_error_mm: Option<TargetError>,
     pub daemon_warnings: Vec<String>,
+}
+
+/// Distances between two sets of keypoint targets, mm.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct TargetError {
+    pub mean: f64,
+    pub max: f64,
+}
+
+impl TargetError {
+    pub fn between(a: &[Point3<f64>], b: &[Point3<f64>]) -> Self {
+        let d: Vec<f64> = a.iter().zip(b).map(|(p, q)| 1e3 * (p - q).norm()).collect();
+        let n = d.len().max(1) as f64;
+        Self { mean: d.iter().sum::<f64>() / n, max: d.iter().copied().fold(0.0, f64::max) }
+    }
 }
 
 /// Plans grasps for a category's instances (one shape space, one
@@ -327,13 +346,7 @@ impl GraspPlanner {
                 format!("`{}` is not a training instance of the {} shape space", instance.name, self.space.category)
             },
         })?;
-        if self.transfer.is_none() {
-            let keypoints = self.demo.keypoints(hand).map_err(engine_error)?;
-            let canonical = self.canonical_instance()?;
-            self.transfer = Some(TransferModel::new(&self.space, &keypoints, &canonical.mesh));
-        }
-        let model = self.transfer.as_ref().expect("made above");
-        let tool = TransferredTool::from_latent(model, &self.space.train_latents[k]).map_err(engine_error)?;
+        let tool = self.true_transfer(k)?;
         // As `graspd eval grasp`: the table under the registered shape.
         let table = self.demo.table.then(|| tool.lowest_z());
         let out =
@@ -348,6 +361,19 @@ impl GraspPlanner {
             latent: self.space.train_latents[k].clone(),
             start: HandStart::PreGrasp,
         })
+    }
+
+    /// The demonstration carried through training tool `k`'s own latent
+    /// (its shape at the canonical pose); the transfer model is made on the
+    /// first call and kept for the category's other tools.
+    fn true_transfer(&mut self, k: usize) -> Result<TransferredTool, SimError> {
+        if self.transfer.is_none() {
+            let keypoints = self.demo.keypoints(&self.hand).map_err(engine_error)?;
+            let canonical = self.canonical_instance()?;
+            self.transfer = Some(TransferModel::new(&self.space, &keypoints, &canonical.mesh));
+        }
+        let model = self.transfer.as_ref().expect("made above");
+        TransferredTool::from_latent(model, &self.space.train_latents[k]).map_err(engine_error)
     }
 
     fn canonical_instance(&self) -> Result<Instance, SimError> {
@@ -437,6 +463,12 @@ impl GraspPlanner {
                 (plan, d.tool_from_canonical)
             }
         };
+        if self.daemon.is_some() {
+            if let Some(k) = self.space.instances.iter().position(|n| n == &instance.name) {
+                let truth = self.true_transfer(k)?;
+                info.target_error_mm = Some(TargetError::between(&plan.demo_keypoints, &truth.targets));
+            }
+        }
         match self.start {
             StartMode::PreGrasp => {}
             StartMode::Canonical => {
