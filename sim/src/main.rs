@@ -47,6 +47,10 @@ struct StripArgs {
     /// `pregrasp`, `canonical` or `neutral` (as the task commands' --start).
     #[arg(long, default_value = "pregrasp")]
     start: String,
+    /// `inprocess` (the tool's training latent) or `register` (the scene
+    /// camera's view registered in this process, as the daemon does; test tools need it).
+    #[arg(long, default_value = "inprocess")]
+    grasp_from: String,
     #[arg(long, default_value_t = 6)]
     frames: usize,
     /// Size of one frame, pixels.
@@ -790,6 +794,13 @@ fn run_strip(a: StripArgs) -> Result<(), Box<dyn std::error::Error>> {
         instance: a.instance,
         seed: a.seed,
         start: a.start.parse()?,
+        from_camera: match a.grasp_from.parse()? {
+            graspd_sim::plan::GraspFrom::InProcess => false,
+            graspd_sim::plan::GraspFrom::Register => true,
+            graspd_sim::plan::GraspFrom::Daemon => {
+                return Err("sim strip takes --grasp-from inprocess or register, not daemon".into())
+            }
+        },
         frames: a.frames,
         render: {
             let d = RenderOptions::default();

@@ -602,6 +602,10 @@ pub struct StripRequest {
     pub seed: u64,
     /// Where the hand starts (crate::plan::StartMode).
     pub start: crate::plan::StartMode,
+    /// The grasp from the scene camera's view of the tool, registered and
+    /// grasped by graspd's engine in this process (`--grasp-from register`;
+    /// test tools need it) instead of the tool's training latent.
+    pub from_camera: bool,
     pub frames: usize,
     pub render: RenderOptions,
     /// Columns between the frames of the strip.
@@ -663,14 +667,21 @@ pub fn make_strip(
     .ok_or_else(|| SimError::Config {
         reason: format!("no {category} instance `{}`", request.instance.as_deref().unwrap_or("canonical")),
     })?;
-    if instance.split == Split::Test {
+    if instance.split == Split::Test && !request.from_camera {
         return Err(SimError::Config {
-            reason: format!("`{}` is a test instance: its grasp needs the daemon (not in sim strip)", instance.name),
+            reason: format!(
+                "`{}` is a test instance: it has no latent, so its grasp comes from the camera (--grasp-from register)",
+                instance.name
+            ),
         });
     }
     std::fs::create_dir_all(out).map_err(|source| SimError::Io { path: out.to_owned(), source })?;
     let asset = crate::hand::HandAsset::default_sih()?;
     let mut planner = crate::plan::GraspPlanner::new(asset.model(), category, request.seed)?.with_start(request.start);
+    if request.from_camera {
+        planner =
+            planner.with_engine_camera(crate::camera::SceneCamera::default(), crate::camera::LabFrame::default())?;
+    }
     let table_z = crate::scene::Table::default().top_z;
     let total = request.frames + 1;
 
@@ -881,6 +892,36 @@ mod tests {
         RECORDER.with(|r| assert!(matches!(*r.borrow(), Recorder::Off)));
     }
 
+    /// A test tool has no latent: its strip needs the grasp from the camera,
+    /// and with it the episode runs (mug_test_01 is placed from its view).
+    #[test]
+    fn a_test_tool_is_drawn_with_its_grasp_from_the_camera() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut request = StripRequest {
+            task: StripTask::PlaceMug,
+            instance: Some("mug_test_01".into()),
+            seed: 0,
+            start: crate::plan::StartMode::PreGrasp,
+            from_camera: false,
+            frames: 2,
+            render: RenderOptions { width: 32, height: 24, ..Default::default() },
+            gap: 2,
+        };
+        let err = make_strip(&request, dir.path(), &mut |_, _| {}).unwrap_err();
+        assert!(err.to_string().contains("--grasp-from register"), "{err}");
+        request.from_camera = true;
+        let out = match make_strip(&request, dir.path(), &mut |_, _| {}) {
+            Ok(out) => out,
+            Err(SimError::Offscreen { reason }) => {
+                eprintln!("skipped: no offscreen rendering here ({reason})");
+                return;
+            }
+            Err(e) => panic!("{e}"),
+        };
+        assert_eq!(out.instance, "mug_test_01");
+        assert!(out.success);
+    }
+
     /// `sim strip` end to end, small: the frame files, the strip's size
     /// (K frames and K - 1 gaps wide) and the episode's success.
     #[test]
@@ -891,6 +932,7 @@ mod tests {
             instance: None,
             seed: 0,
             start: crate::plan::StartMode::PreGrasp,
+            from_camera: false,
             frames: 3,
             render: RenderOptions { width: 64, height: 48, ..Default::default() },
             gap: 4,
