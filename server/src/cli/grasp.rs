@@ -86,9 +86,10 @@ pub struct EvalGraspArgs {
     /// Solve without the penetration term (keypoints only, as eq. 6 alone).
     #[arg(long)]
     no_penetration: bool,
-    /// Clearance the penetration term keeps from the registered shape, mm.
-    #[arg(long, default_value_t = 1e3 * SolveOptions::default().penetration.margin_m)]
-    margin_mm: f64,
+    /// Clearance the penetration term keeps from the registered shape, mm
+    /// (default: the demonstration's `penetration_margin_m`, else 0).
+    #[arg(long)]
+    margin_mm: Option<f64>,
     /// A shape-space artefact to evaluate (default: the category's built-in
     /// space, cached in assets/spaces and built there when missing).
     #[arg(long)]
@@ -427,14 +428,16 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
 pub fn run_eval(a: EvalGraspArgs) -> CliResult {
     let category: Category = a.category.parse()?;
     let hand = HandModel::default_sih()?;
-    let demo = load_demo(a.demo.as_ref(), category)?;
+    let mut demo = load_demo(a.demo.as_ref(), category)?;
+    if let Some(mm) = a.margin_mm {
+        demo.penetration_margin_m = Some(1e-3 * mm);
+    }
     let space = super::space::load_space(category, a.space.as_deref())?;
     let family = tools::family(category)?;
     let canonical = family.iter().find(|i| i.split == Split::Canonical).ok_or("no canonical instance")?;
     let training: Vec<&tools::Instance> = family.iter().filter(|i| i.split == Split::Train).collect();
     let mut solve = SolveOptions { starts: a.starts.max(1), ..SolveOptions::default() };
     solve.penetration.enabled = !a.no_penetration;
-    solve.penetration.margin_m = 1e-3 * a.margin_mm;
     // A demonstration made without a table is evaluated without one.
     let opts = GraspEvalOptions { solve, repeats: a.repeats, table: demo.table && !a.no_table };
     let bar = progress_bar(training.len() as u64, "instances");

@@ -208,6 +208,15 @@ pub struct Demonstration {
     /// coupling to the little finger stops short).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub free_fingers: Vec<String>,
+    /// How far the grasp's hand keeps off the registered shape when the
+    /// demonstration is carried to another tool (metres; absent: the
+    /// solver's own, 0). The registered shape is a few millimetres off the
+    /// real surface, so fingers that rest on it may be inside the real tool;
+    /// a margin trades a few millimetres of keypoint distance for that,
+    /// which suits a wrap or pinch (mug, hammer) but not a finger that must
+    /// rest on a trigger (drill).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub penetration_margin_m: Option<f64>,
 }
 
 fn default_true() -> bool {
@@ -268,7 +277,12 @@ pub enum DemoFileError {
         #[source]
         source: serde_json::Error,
     },
+    #[error("{path}: {reason}")]
+    Invalid { path: std::path::PathBuf, reason: String },
 }
+
+/// The largest margin a demonstration file may ask for, metres.
+pub const MAX_PENETRATION_MARGIN_M: f64 = 0.01;
 
 impl Demonstration {
     /// Reads a demonstration file (format: `assets/demos/README.md`).
@@ -276,7 +290,17 @@ impl Demonstration {
         let path = path.as_ref();
         let text =
             std::fs::read_to_string(path).map_err(|source| DemoFileError::Io { path: path.to_path_buf(), source })?;
-        serde_json::from_str(&text).map_err(|source| DemoFileError::Json { path: path.to_path_buf(), source })
+        let demo: Self =
+            serde_json::from_str(&text).map_err(|source| DemoFileError::Json { path: path.to_path_buf(), source })?;
+        if let Some(m) = demo.penetration_margin_m {
+            if !(m.is_finite() && (0.0..=MAX_PENETRATION_MARGIN_M).contains(&m)) {
+                return Err(DemoFileError::Invalid {
+                    path: path.to_path_buf(),
+                    reason: format!("penetration_margin_m {m}: 0 to {MAX_PENETRATION_MARGIN_M} m"),
+                });
+            }
+        }
+        Ok(demo)
     }
 
     /// The bundled demonstration of a category (`assets/demos/NAME.json`).
@@ -308,6 +332,7 @@ impl Demonstration {
             keypoints_tool,
             table: true,
             free_fingers: Vec::new(),
+            penetration_margin_m: None,
         }
     }
 

@@ -894,6 +894,16 @@ fn transferring_onto_the_demonstration_tool_returns_the_demonstration() {
     assert!(out.pregrasp.collision_free);
     let expected = motion.rigid() * tool_pose.inverse() * grasp.wrist_pose_world;
     assert!((out.warm_start.wrist_pose_world.to_homogeneous() - expected.to_homogeneous()).abs().max() < 1e-9);
+    // A demonstration's margin holds for its solve only: the hand keeps off
+    // the surface it was closed on (keypoints moved), and the solver's own
+    // margin (0) is back for the next solve.
+    let mut kept_off = demo.clone();
+    kept_off.penetration_margin_m = Some(0.004);
+    let off = solve_transferred(&mut solver, &kept_off, &tool, None, &PreGraspOptions::default()).unwrap();
+    assert!(off.task_space_distance_cm > 0.05, "{}", off.task_space_distance_cm);
+    assert_eq!(solver.options().penetration.margin_m, 0.0);
+    let again = solve_transferred(&mut solver, &demo, &tool, None, &PreGraspOptions::default()).unwrap();
+    assert!(again.task_space_distance_cm < 1e-4, "{}", again.task_space_distance_cm);
     // A demonstration that does not fit the hand is refused.
     let mut wrong = demo.clone();
     wrong.actuated.remove("palm_to_if_proximal");
@@ -1058,5 +1068,21 @@ fn bad_penetration_options_are_refused() {
         let mut solver = GraspSolver::new(&hand, opts);
         let err = solver.solve(&targets, &truth, &Scene::default()).unwrap_err();
         assert!(matches!(err, GraspError::InvalidOption { .. }), "margin {margin}, weight {weight}: {err}");
+    }
+}
+
+#[test]
+fn a_demonstration_file_with_an_absurd_margin_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(Demonstration::builtin_path(crate::tools::Category::Mug)).unwrap();
+    let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    for (m, ok) in [(0.002, true), (-0.001, false), (0.5, false)] {
+        v["penetration_margin_m"] = serde_json::json!(m);
+        let path = dir.path().join("demo.json");
+        std::fs::write(&path, v.to_string()).unwrap();
+        match Demonstration::load(&path) {
+            Ok(d) => assert!(ok && d.penetration_margin_m == Some(m), "{m}"),
+            Err(e) => assert!(!ok && e.to_string().contains("penetration_margin_m"), "{m}: {e}"),
+        }
     }
 }

@@ -206,7 +206,14 @@ pub fn solve_transferred(
     let warm_start = Grasp::new(&hand, tool.pose.carry(&canonical.wrist_pose_world), canonical.actuated.clone());
     let targets = GraspTargets::uniform(tool.targets.clone());
     let scene = Scene { tool: Some(&tool.collider), table_height_world };
-    let (grasp, report) = solver.solve(&targets, &warm_start, &scene)?;
+    // The demonstration's margin for this solve only; the solver's own after.
+    let own_margin = solver.options().penetration.margin_m;
+    if let Some(m) = demo.penetration_margin_m {
+        solver.options_mut().penetration.margin_m = m;
+    }
+    let solved = solver.solve(&targets, &warm_start, &scene);
+    solver.options_mut().penetration.margin_m = own_margin;
+    let (grasp, report) = solved?;
     let task_space_distance_cm = distance_cm(&hand, &grasp, &targets.keypoints_world);
     let cg = BaselineGrasp {
         task_space_distance_cm: distance_cm(&hand, &warm_start, &targets.keypoints_world),
