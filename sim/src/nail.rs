@@ -606,8 +606,8 @@ pub struct NailSetup {
 /// in-process and `--grasp-from register`: 0 iterations 80 / 31 of 110 and
 /// 70 / 21 of 100; 3 iterations 100 / 75 and 90 / 63; 5: 99 / 73 and 89 / 67;
 /// 10: 80 / 68 of 100 (seeds 100-109). A physics step costs 67 µs instead
-/// of 42 (median, seeds 0-9, in-process). Place mug gains nothing from it (in-process 87 → 86 of 100,
-/// register 64 → 69), so it stays off there.
+/// of 42 (median, seeds 0-9, in-process). Place mug gains nothing from it
+/// (in-process 87 → 86 of 100, register 64 → 69), so it stays off there.
 pub const NAIL_NOSLIP_ITERATIONS: usize = 3;
 
 impl Default for NailSetup {

@@ -336,7 +336,7 @@ impl GraspPlanner {
                 start: HandStart::PreGrasp,
             });
         }
-        let k = self.space.instances.iter().position(|n| n == &instance.name).ok_or_else(|| SimError::Plan {
+        let k = self.training_index(instance).ok_or_else(|| SimError::Plan {
             reason: if instance.split == Split::Test {
                 format!(
                     "`{}` is a test instance: it has no latent in the {} shape space, so it is grasped from the camera's view through the daemon (--grasp-from daemon)",
@@ -346,7 +346,8 @@ impl GraspPlanner {
                 format!("`{}` is not a training instance of the {} shape space", instance.name, self.space.category)
             },
         })?;
-        let tool = self.true_transfer(k)?;
+        let latent = self.space.train_latents[k].clone();
+        let tool = TransferredTool::from_latent(self.transfer_model()?, &latent).map_err(engine_error)?;
         // As `graspd eval grasp`: the table under the registered shape.
         let table = self.demo.table.then(|| tool.lowest_z());
         let out =
@@ -358,22 +359,25 @@ impl GraspPlanner {
             source: "transferred",
             task_space_distance_cm: out.task_space_distance_cm,
             demo_keypoints: tool.targets.clone(),
-            latent: self.space.train_latents[k].clone(),
+            latent,
             start: HandStart::PreGrasp,
         })
     }
 
-    /// The demonstration carried through training tool `k`'s own latent
-    /// (its shape at the canonical pose); the transfer model is made on the
-    /// first call and kept for the category's other tools.
-    fn true_transfer(&mut self, k: usize) -> Result<TransferredTool, SimError> {
+    /// The demonstration and canonical mesh as models of the latent, made
+    /// on the first call and kept for the category's other tools.
+    fn transfer_model(&mut self) -> Result<&TransferModel, SimError> {
         if self.transfer.is_none() {
             let keypoints = self.demo.keypoints(&self.hand).map_err(engine_error)?;
             let canonical = self.canonical_instance()?;
             self.transfer = Some(TransferModel::new(&self.space, &keypoints, &canonical.mesh));
         }
-        let model = self.transfer.as_ref().expect("made above");
-        TransferredTool::from_latent(model, &self.space.train_latents[k]).map_err(engine_error)
+        Ok(self.transfer.as_ref().expect("made above"))
+    }
+
+    /// Where `instance` is among the shape space's training tools (its latent's row).
+    fn training_index(&self, instance: &Instance) -> Option<usize> {
+        self.space.instances.iter().position(|n| n == &instance.name)
     }
 
     fn canonical_instance(&self) -> Result<Instance, SimError> {
@@ -464,9 +468,10 @@ impl GraspPlanner {
             }
         };
         if self.daemon.is_some() {
-            if let Some(k) = self.space.instances.iter().position(|n| n == &instance.name) {
-                let truth = self.true_transfer(k)?;
-                info.target_error_mm = Some(TargetError::between(&plan.demo_keypoints, &truth.targets));
+            if let Some(k) = self.training_index(instance) {
+                let latent = self.space.train_latents[k].clone();
+                let truth = self.transfer_model()?.targets(&latent);
+                info.target_error_mm = Some(TargetError::between(&plan.demo_keypoints, &truth));
             }
         }
         match self.start {

@@ -105,6 +105,12 @@ impl TransferModel {
             parts: canonical_mesh.parts.clone(),
         }
     }
+
+    /// The demonstration's keypoints through `latent`, canonical frame,
+    /// without carrying the mesh (the targets of [`TransferredTool::from_latent`]).
+    pub fn targets(&self, latent: &[f64]) -> Vec<Point3<f64>> {
+        self.keypoints.evaluate(latent).into_iter().map(Point3::from).collect()
+    }
 }
 
 /// The demonstration moved onto one tool.
