@@ -9,8 +9,11 @@
 //!    further back than the pre-grasp), the joints from where they are to
 //!    the pre-grasp's; the approach then starts there, so the hand comes in
 //!    along the pre-grasp direction through the pre-grasp;
-//! 1. approach: the wrist moves in a straight line to the grasp's wrist pose,
-//!    joints held at the pre-grasp's;
+//! 1. approach: the wrist moves in a straight line to the grasp's wrist pose
+//!    (pushed `press_m` further along the palm normal: the solver places the
+//!    palm on, or a margin off, the registered surface, and the wrist's weld
+//!    is a spring, so a command at the surface presses with no force; the
+//!    wrist's counterpart of the squeeze), joints held at the pre-grasp's;
 //! 2. close: the joint targets ramp to the grasp's joints plus a squeeze
 //!    (each joint that closes from the open hand to the grasp is commanded
 //!    further by `squeeze_rad`, so the servos press on the tool rather than
@@ -61,6 +64,10 @@ pub struct LiftScript {
     pub hold_s: f64,
     /// Extra closing commanded beyond the grasp's joints, radians.
     pub squeeze_rad: f64,
+    /// How far past the grasp's wrist pose the approach goes, along the palm
+    /// normal, metres: the palm presses on the tool instead of stopping where
+    /// the solver put it (module docs, step 1).
+    pub press_m: f64,
     /// The reach from a fixed start (module docs), seconds; 0 s when the hand starts at the pre-grasp.
     pub reach_s: f64,
     /// How much further back than the pre-grasp the reach ends, along the
@@ -78,6 +85,7 @@ impl Default for LiftScript {
             lift_m: 0.10,
             hold_s: 2.0,
             squeeze_rad: 0.3,
+            press_m: 0.0,
             // 1 s fits the task scripts in the 10 s episode (Place mug's retreat ends at 10.0 s).
             reach_s: 1.0,
             reach_standoff_m: 0.05,
@@ -165,7 +173,8 @@ pub struct LiftController {
 
 impl LiftController {
     pub fn new(hand: &HandModel, plan: &GraspPlan, script: &LiftScript) -> Self {
-        let grasp_wrist = plan.grasp.wrist_pose_world;
+        let grasp_wrist =
+            plan.grasp.wrist_pose_world * Translation3::from(script.press_m * hand.palm_normal().into_inner());
         let pre_wrist = plan.pregrasp.wrist_pose_world;
         let (reach_from, approach_from, reach_s) = match &plan.start {
             HandStart::PreGrasp => (None, pre_wrist, 0.0),
@@ -452,6 +461,27 @@ mod tests {
         assert!(out.links_touching_at_grasp.iter().any(|l| l.starts_with("th_")), "{out:?}");
         assert!(out.links_touching_at_grasp.iter().any(|l| l.starts_with("if_") || l.starts_with("mf_")), "{out:?}");
         assert!(out.warnings.is_empty(), "{out:?}");
+    }
+
+    /// The approach ends `press_m` past the grasp's wrist, along the palm
+    /// normal, with the grasp's orientation; the lift rises from there.
+    #[test]
+    fn the_approach_presses_past_the_grasp_along_the_palm_normal() {
+        let asset = HandAsset::default_sih().unwrap();
+        let hand = asset.model();
+        let mug = tools::instance(Category::Mug, "mug_canonical").unwrap();
+        let plan = planner(&asset).plan(&mug).unwrap();
+        let script = LiftScript { press_m: 0.006, ..LiftScript::default() };
+        let lift = LiftController::new(hand, &plan, &script);
+        let mut q = vec![0.0; hand.actuated_joints().len()];
+        let at_grasp = lift.targets(script.approach_s, &mut q);
+        let grasp = plan.grasp.wrist_pose_world;
+        let normal = grasp.rotation * hand.palm_normal().into_inner();
+        let shift = at_grasp.translation.vector - grasp.translation.vector;
+        assert!((shift - 0.006 * normal).norm() < 1e-12, "{shift:?} vs {normal:?}");
+        assert!(at_grasp.rotation.angle_to(&grasp.rotation) < 1e-12);
+        let lifted = lift.lifted_wrist().translation.vector - at_grasp.translation.vector;
+        assert!((lifted - Vector3::new(0.0, 0.0, script.lift_m)).norm() < 1e-12, "{lifted:?}");
     }
 
     /// The same episode with a hand that never closes (grasp joints = the

@@ -167,6 +167,9 @@ struct NailArgs {
     /// Closing commanded beyond the grasp's joints, rad (default: the script's).
     #[arg(long)]
     squeeze_rad: Option<f64>,
+    /// How far past the grasp the approach presses the palm, mm (default: the script's).
+    #[arg(long)]
+    press_mm: Option<f64>,
     /// MuJoCo no-slip solver iterations (0: off).
     #[arg(long)]
     noslip_iterations: Option<usize>,
@@ -194,6 +197,9 @@ struct PoseTaskArgs {
     /// MuJoCo no-slip solver iterations (0: off).
     #[arg(long)]
     noslip_iterations: Option<usize>,
+    /// How far past the grasp the approach presses the palm, mm (default: the task's).
+    #[arg(long)]
+    press_mm: Option<f64>,
     #[arg(long)]
     json: bool,
 }
@@ -494,6 +500,10 @@ fn run_pose_task(a: PoseTaskArgs, task: PoseTask) -> Result<(), Box<dyn std::err
         place.base.physics.noslip_iterations = n;
         position.base.physics.noslip_iterations = n;
     }
+    if let Some(mm) = a.press_mm {
+        place.script.lift.press_m = 1e-3 * mm;
+        position.script.lift.press_m = 1e-3 * mm;
+    }
     let ranges = match task {
         PoseTask::PlaceMug => serde_json::to_value(&place.ranges)?,
         PoseTask::PositionDrill => serde_json::to_value(&position.ranges)?,
@@ -564,6 +574,9 @@ fn run_nail(a: NailArgs) -> Result<(), Box<dyn std::error::Error>> {
     }
     if let Some(v) = a.squeeze_rad {
         setup.script.lift.squeeze_rad = v;
+    }
+    if let Some(mm) = a.press_mm {
+        setup.script.lift.press_m = 1e-3 * mm;
     }
     let mut report = TaskReport::default();
     for inst in chosen {
