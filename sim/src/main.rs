@@ -223,6 +223,9 @@ struct LiftArgs {
     /// Closing commanded beyond the grasp's joints, rad (default: the script's).
     #[arg(long)]
     squeeze_rad: Option<f64>,
+    /// How far past the grasp the approach presses the palm, mm (default: 0).
+    #[arg(long)]
+    press_mm: Option<f64>,
     /// Physics steps per 30 Hz control step.
     #[arg(long)]
     substeps: Option<usize>,
@@ -626,6 +629,9 @@ fn run_lift(a: LiftArgs) -> Result<(), Box<dyn std::error::Error>> {
     }
     if let Some(s) = a.squeeze_rad {
         setup.script.squeeze_rad = s;
+    }
+    if let Some(mm) = a.press_mm {
+        setup.script.press_m = 1e-3 * mm;
     }
     if let Some(n) = a.substeps {
         setup.physics.substeps = n.max(1);
