@@ -45,7 +45,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let space = builtin::load_or_build(category, &graspd_sim::plan::spaces_dir(), |_, _| {})?;
     let demo = Demonstration::builtin(category)?;
     let kp = demo.keypoints(&hand)?;
-    let k = space.instances.iter().position(|n| n == &name).unwrap();
+    let Some(k) = space.instances.iter().position(|n| n == &name) else {
+        // A test tool has no training latent: only the grid, about the camera's grasp.
+        return camera_grid(&asset, &instance, category, &space, &seeds);
+    };
     let true_latent = space.train_latents[k].clone();
 
     let mut planner = GraspPlanner::new(&hand, category, 0)?;
@@ -393,6 +396,93 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 iso_diff(&base.grasp.wrist_pose_world, &plan.grasp.wrist_pose_world)
             );
         }
+    }
+    Ok(())
+}
+
+/// `GAP_GRID` (default 3 mm, `GAP_GRID_CENTRE`) about the grasp from the
+/// camera's view of a tool without a training latent (a test tool), Place
+/// mug episodes (mugs) or Drive nail (hammers).
+fn camera_grid(
+    asset: &HandAsset,
+    instance: &graspd::tools::Instance,
+    category: Category,
+    space: &graspd::shape::ShapeSpace,
+    seeds: &[u64],
+) -> Result<(), Box<dyn std::error::Error>> {
+    let hand = asset.model().clone();
+    let demo = Demonstration::builtin(category)?;
+    let mm: f64 = std::env::var("GAP_GRID").ok().and_then(|v| v.parse().ok()).unwrap_or(3.0);
+    let c: Vec<f64> =
+        std::env::var("GAP_GRID_CENTRE").map_or(vec![0.0; 3], |v| v.split(',').map(|x| x.parse().unwrap()).collect());
+    let mut planner =
+        GraspPlanner::new(&hand, category, 0)?.with_engine_camera(SceneCamera::default(), LabFrame::default())?;
+    let mut grasper =
+        DaemonGrasper::in_process(&hand, category, space.clone(), SceneCamera::default(), LabFrame::default())?;
+    let setup = NailSetup::default();
+    let place = PlaceSetup::default();
+    let table_z = graspd_sim::scene::Table::default().top_z;
+    let is_mug = category == Category::Mug;
+    let face = if is_mug { Default::default() } else { face_of(instance)? };
+    let board = setup.ranges.sample(0, table_z).board;
+    let mut rig = if is_mug {
+        TaskRig::build(asset, &mut planner, instance, &place.base, "place", Vec::new(), Vec::new())?
+    } else {
+        let bodies = setup.fixture.bodies(&board);
+        TaskRig::build(asset, &mut planner, instance, &setup.base, "nail", bodies, NailFixture::contact())?
+    };
+    for &seed in seeds {
+        let episode = setup.ranges.sample(seed, table_z);
+        let place_episode = place.ranges.sample(seed, table_z);
+        let start = if is_mug { place_episode.start } else { episode.start };
+        let d = grasper.grasp(&hand, category, &instance.mesh, &start, table_z, demo.table, seed)?;
+        println!(
+            "seed {seed}: scale {:.3}, q {:?}, tsd {:.2} cm",
+            d.tool_from_canonical.scale,
+            d.grasp.actuated.iter().map(|v| format!("{v:.3}")).collect::<Vec<_>>(),
+            d.task_space_distance_cm
+        );
+        let mut line = String::new();
+        for (i, dx) in [-mm, 0.0, mm].iter().enumerate() {
+            for dy in [-mm, 0.0, mm] {
+                for dz in [-mm, 0.0, mm] {
+                    let delta = Isometry3::translation(1e-3 * (dx + c[0]), 1e-3 * (dy + c[1]), 1e-3 * (dz + c[2]));
+                    let mut plan = GraspPlan {
+                        grasp: d.grasp.clone(),
+                        pregrasp: d.pregrasp.clone(),
+                        pregrasp_collision_free: d.pregrasp_collision_free,
+                        source: "camera",
+                        task_space_distance_cm: d.task_space_distance_cm,
+                        demo_keypoints: Vec::new(),
+                        latent: d.latent.clone(),
+                        start: HandStart::PreGrasp,
+                    };
+                    for g in [&mut plan.grasp, &mut plan.pregrasp] {
+                        *g = graspd::grasp::Grasp::new(&hand, g.wrist_pose_world * delta, g.actuated.clone());
+                    }
+                    let (scene, data, points) = (&rig.scene, &mut rig.data, &rig.height_points);
+                    let (success, clearance) = if is_mug {
+                        let o = run_place(scene, data, &hand, &plan, points, &place_episode, &place.script, 30.0)?;
+                        (o.success, o.clearance_after_lift_m)
+                    } else {
+                        let o = run_nail(scene, data, &hand, &plan, points, &face, &episode, &setup.script, 30.0)?;
+                        (o.success, o.clearance_after_lift_m)
+                    };
+                    line.push(if success {
+                        '#'
+                    } else if clearance > 0.03 {
+                        'l'
+                    } else {
+                        '.'
+                    });
+                }
+                line.push(' ');
+            }
+            if i < 2 {
+                line.push_str("| ");
+            }
+        }
+        println!("  grid ±{mm} mm about {c:?} (x: blocks, y: triples, z: within) {line}");
     }
     Ok(())
 }

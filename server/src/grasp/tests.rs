@@ -910,6 +910,47 @@ fn transferring_onto_the_demonstration_tool_returns_the_demonstration() {
     assert!(solve_transferred(&mut solver, &wrong, &tool, None, &PreGraspOptions::default()).is_err());
 }
 
+/// On a tool registered larger than the canonical, the solver's targets
+/// keep each keypoint's nearest surface point and shrink its offset from it
+/// back to the hand's size; at scale 1 or below they are the generalised
+/// demonstration itself.
+#[test]
+fn solver_targets_keep_the_hands_offsets_from_a_scaled_up_surface() {
+    use super::transfer::{Similarity, TransferredTool};
+    let radius = 0.025;
+    let scale = 1.2;
+    let mesh = cylinder_x_mesh(scale * radius, scale * 0.07, 64);
+    // Keypoints 10 and 30 mm off the scaled cylinder's side, one inside, and
+    // one beyond its end cap (its nearest surface point on the cap).
+    let targets = vec![
+        Point3::new(0.01, 0.0, scale * radius + 0.010),
+        Point3::new(-0.02, scale * radius + 0.030, 0.0),
+        Point3::new(0.0, 0.0, scale * radius - 0.006),
+        Point3::new(scale * 0.07 + 0.012, 0.0, 0.0),
+    ];
+    let tool = |scale: f64| TransferredTool {
+        pose: Similarity { scale, ..Similarity::identity() },
+        targets: targets.clone(),
+        collider: ToolCollider::new(&mesh, Isometry3::identity()).unwrap(),
+        mesh: mesh.clone(),
+        elapsed_ms: 0.0,
+    };
+    let solved = tool(scale).solver_targets();
+    let expected = [
+        Point3::new(0.01, 0.0, scale * radius + 0.010 / scale),
+        Point3::new(-0.02, scale * radius + 0.030 / scale, 0.0),
+        Point3::new(0.0, 0.0, scale * radius - 0.006 / scale),
+        Point3::new(scale * 0.07 + 0.012 / scale, 0.0, 0.0),
+    ];
+    for (got, want) in solved.iter().zip(&expected) {
+        // The faceted cylinder (64 sides) is within 0.1 mm of the round one.
+        assert!((got - want).norm() < 2e-4, "{got:?} vs {want:?}");
+    }
+    for s in [1.0, 0.9] {
+        assert_eq!(tool(s).solver_targets(), targets);
+    }
+}
+
 #[test]
 fn an_inside_out_part_is_not_inside_far_away() {
     // All triangles flipped: pseudo-normals call every point "inside". The

@@ -171,6 +171,36 @@ impl TransferredTool {
         Ok(Self { pose, targets, mesh, collider, elapsed_ms: 1e3 * t0.elapsed().as_secs_f64() })
     }
 
+    /// The grasp solver's targets: the generalised demonstration, except that
+    /// a registered scale above 1 does not stretch a keypoint's offset from
+    /// the registered surface. Each target keeps its nearest surface point
+    /// (where the shape space and the pose put that part of the tool) and
+    /// its offset from it divided by the scale, back to the demonstrating
+    /// hand's size: the hand does not grow with the tool, and a stretched
+    /// layout (the palm 85 mm off a mug's handle becomes 100 mm on a mug
+    /// 1.18× the canonical) has the solver hold the fingers short of where
+    /// they hooked the handle. `sim place --grasp-from register` on the
+    /// test mugs: 10 → 21 of 30 (the two large ones, registered at 1.18,
+    /// were never lifted). A scale below 1 keeps the shrunken offsets (the
+    /// hand closes onto a smaller tool; undoing it loosened the hammers'
+    /// pinch, whose registered scale of 0.87-0.95 is partly the latent's).
+    pub fn solver_targets(&self) -> Vec<Point3<f64>> {
+        let scale = self.pose.scale;
+        if !(scale > 1.0) {
+            return self.targets.clone();
+        }
+        self.targets
+            .iter()
+            .map(|t| match self.collider.signed_distance(t, f64::INFINITY) {
+                Some((distance, normal)) => {
+                    let anchor = t - distance * normal;
+                    anchor + (t - anchor) / scale
+                }
+                None => *t,
+            })
+            .collect()
+    }
+
     /// Lowest point of the registered shape (where the table is, for a tool
     /// resting on one).
     pub fn lowest_z(&self) -> f64 {
@@ -181,12 +211,14 @@ impl TransferredTool {
 /// A transferred grasp with its baselines and pre-grasp.
 #[derive(Clone, Debug)]
 pub struct TransferredGrasp {
+    /// What the solver fitted: [`TransferredTool::solver_targets`] (the
+    /// generalised demonstration unless the registered scale exceeds 1).
     pub targets: GraspTargets,
     /// The demonstrated grasp carried by the registered pose: the warm start.
     pub warm_start: Grasp,
     pub grasp: Grasp,
     pub report: SolveReport,
-    /// Paper Table I: the solved grasp's mean keypoint distance to the targets, cm.
+    /// Paper Table I: the solved grasp's mean keypoint distance to `targets`, cm.
     pub task_space_distance_cm: f64,
     /// CG: the demonstrated grasp kept in the object frame (= the warm start).
     pub cg: BaselineGrasp,
@@ -210,7 +242,7 @@ pub fn solve_transferred(
     let hand = solver.hand().clone();
     let canonical = demo.grasp_at(&hand, &Isometry3::identity())?;
     let warm_start = Grasp::new(&hand, tool.pose.carry(&canonical.wrist_pose_world), canonical.actuated.clone());
-    let targets = GraspTargets::uniform(tool.targets.clone());
+    let targets = GraspTargets::uniform(tool.solver_targets());
     let scene = Scene { tool: Some(&tool.collider), table_height_world };
     // The demonstration's margin for this solve only; the solver's own after.
     let own_margin = solver.options().penetration.margin_m;
