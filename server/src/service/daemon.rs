@@ -1053,15 +1053,26 @@ fn start_janitors(
         .name("graspd-janitor".into())
         .spawn(move || {
             let Some(node) = janitor_node(&cfg) else { return };
+            // A dead peer whose resources cannot be removed (another user's,
+            // say) fails again on every pass: say so when the count changes,
+            // not twice a second for the daemon's life.
+            let mut failing = 0;
             while !s.load(Ordering::Acquire) {
                 std::thread::sleep(period);
                 let c = node.try_cleanup_dead_nodes();
-                if c.cleanups > 0 || c.failed_cleanups > 0 {
-                    tracing::info!(
-                        cleanups = c.cleanups,
-                        failed = c.failed_cleanups,
-                        "removed the resources of dead peers"
-                    );
+                if c.cleanups > 0 {
+                    tracing::info!(cleanups = c.cleanups, "removed the resources of dead peers");
+                }
+                if c.failed_cleanups != failing {
+                    if c.failed_cleanups > 0 {
+                        tracing::warn!(
+                            failed = c.failed_cleanups,
+                            "cannot remove the resources of some dead peers (retrying every pass; said again when the count changes)"
+                        );
+                    } else {
+                        tracing::info!("the dead peers' resources that could not be removed are gone");
+                    }
+                    failing = c.failed_cleanups;
                 }
             }
         })
