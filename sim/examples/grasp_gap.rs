@@ -5,7 +5,8 @@
 //! a mug (`mug_train_01`) runs Place-mug episodes instead.
 //! `GAP_SENS=MM`: the in-process grasp moved ±MM mm or ±MM° along each of
 //! the wrist's axes; `GAP_GRID=MM [GAP_GRID_CENTRE=x,y,z]`: success over a
-//! 3×3×3 grid of wrist shifts of ±MM mm (about a centre, mm, wrist frame).
+//! 3×3×3 grid of wrist shifts of ±MM mm (about a centre, mm, wrist frame),
+//! about the camera's grasp for a test tool or with `GAP_CAMERA=1`.
 
 use graspd::grasp::transfer::{solve_transferred, Similarity, TransferModel, TransferredTool};
 use graspd::grasp::{Demonstration, GraspSolver, PreGraspOptions, SolveOptions, ToolCollider};
@@ -45,8 +46,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let space = builtin::load_or_build(category, &graspd_sim::plan::spaces_dir(), |_, _| {})?;
     let demo = Demonstration::builtin(category)?;
     let kp = demo.keypoints(&hand)?;
-    let Some(k) = space.instances.iter().position(|n| n == &name) else {
-        // A test tool has no training latent: only the grid, about the camera's grasp.
+    let k = space.instances.iter().position(|n| n == &name).filter(|_| std::env::var_os("GAP_CAMERA").is_none());
+    let Some(k) = k else {
+        // A test tool has no training latent (or GAP_CAMERA is set): only
+        // the grid, about the camera's grasp.
         return camera_grid(&asset, &instance, category, &space, &seeds);
     };
     let true_latent = space.train_latents[k].clone();
