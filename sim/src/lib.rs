@@ -15,6 +15,7 @@ pub mod camera;
 pub mod carry;
 pub mod daemon;
 pub mod engine;
+pub mod env;
 pub mod episode;
 pub mod hand;
 pub mod mjcf;
