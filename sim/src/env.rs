@@ -50,6 +50,9 @@ use crate::position::{DrillController, DrillSetup};
 use crate::scene::{Scene, Table};
 use crate::task::{self, nail_reward, pose_reward, GraspState, NailEpisode, NailState, PoseEpisode, PoseState};
 
+/// One environment's MuJoCo state, on its tool's shared model.
+pub type EnvData = MjData<Arc<MjModel>>;
+
 /// The paper's three tasks.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
@@ -193,7 +196,7 @@ impl ToolRig {
         planner: &mut GraspPlanner,
         instance: &Instance,
         setup: &TaskSetup,
-    ) -> Result<(Self, MjData<Arc<MjModel>>), SimError> {
+    ) -> Result<(Self, EnvData), SimError> {
         let task = setup.task();
         if instance.category != task.category() {
             return Err(SimError::Config {
@@ -275,7 +278,7 @@ pub struct TaskEnv {
     setup: Arc<EnvSetup>,
     hand: HandModel,
     rig: Arc<ToolRig>,
-    data: MjData<Arc<MjModel>>,
+    data: EnvData,
     substeps: usize,
     steps_per_episode: usize,
     obs_layout: ObservationLayout,
@@ -300,7 +303,7 @@ impl TaskEnv {
         hand: &HandModel,
         planner: &GraspPlanner,
         rig: Arc<ToolRig>,
-        data: MjData<Arc<MjModel>>,
+        data: EnvData,
         setup: Arc<EnvSetup>,
     ) -> Self {
         let control_hz = setup.task.base().physics.control_hz;
@@ -500,7 +503,7 @@ impl TaskEnv {
     }
 
     /// The MuJoCo state (for checks and pictures).
-    pub fn data(&self) -> &MjData<Arc<MjModel>> {
+    pub fn data(&self) -> &EnvData {
         &self.data
     }
 }
@@ -606,7 +609,7 @@ impl VecTaskEnv {
             .build()
             .map_err(|e| SimError::Config { reason: format!("cannot start {threads} threads: {e}") })?;
         let setup = Arc::new(setup);
-        let mut rigs: Vec<(Arc<ToolRig>, Option<MjData<Arc<MjModel>>>)> = Vec::new();
+        let mut rigs: Vec<(Arc<ToolRig>, Option<EnvData>)> = Vec::new();
         for instance in instances.iter().take(n_envs) {
             let (rig, data) = ToolRig::build(asset, &mut planner, instance, &setup.task)?;
             rigs.push((Arc::new(rig), Some(data)));

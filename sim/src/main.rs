@@ -27,6 +27,10 @@ enum Command {
     Nail(NailArgs),
     /// Throughput of N mug-lift environments stepped in parallel.
     Bench(BenchArgs),
+    /// Episodes of a task stepped by actions (the trainer's interface,
+    /// sim::env): N environments in parallel, a policy's actions in, success
+    /// per tool and control steps per second out.
+    Rollout(RolloutArgs),
     /// Writes a lift scene's MJCF (table, tool, hand at the pre-grasp), for MuJoCo's own tools.
     Scene(SceneArgs),
     /// One seeded episode drawn offscreen: K frames evenly spaced over it and a strip of them (PNG).
@@ -69,6 +73,37 @@ struct StripArgs {
     /// Output folder (frame_NN.png, strip.png), made if missing.
     #[arg(long)]
     out: std::path::PathBuf,
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(clap::Args)]
+struct RolloutArgs {
+    /// `place` (Place mug), `position` (Position drill) or `nail` (Drive nail).
+    #[arg(long)]
+    task: String,
+    /// `canonical`, `train`, `all` (canonical and train), `test` (with
+    /// `--grasp-from register` or `daemon`) or one instance name; the
+    /// environments are dealt round the tools.
+    #[arg(long, default_value = "all")]
+    instances: String,
+    #[command(flatten)]
+    grasp: GraspArgs,
+    /// `expert` (the task's scripted controller, as actions) or `hold`
+    /// (zero wrist deltas, the start's joint targets).
+    #[arg(long, default_value = "expert")]
+    policy: String,
+    /// Environments stepped in parallel.
+    #[arg(long, default_value_t = 16)]
+    envs: usize,
+    /// Worker threads (default: the cores available to this process).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Episodes to finish in all (seeds `seed`, `seed + 1`, ... in the order they start).
+    #[arg(long, default_value_t = 32)]
+    episodes: usize,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
     #[arg(long)]
     json: bool,
 }
@@ -260,6 +295,7 @@ fn main() -> ExitCode {
         Command::Position(a) => run_pose_task(a, PoseTask::PositionDrill),
         Command::Nail(a) => run_nail(a),
         Command::Bench(a) => run_bench(a),
+        Command::Rollout(a) => run_rollout(a),
         Command::Scene(a) => run_scene(a),
         Command::Strip(a) => run_strip(a),
     };
@@ -772,6 +808,108 @@ fn run_bench(a: BenchArgs) -> Result<(), Box<dyn std::error::Error>> {
             envs.substeps(),
             v["physics_us_per_step"].as_f64().unwrap_or(0.0),
             v["simulated_seconds_per_s"].as_f64().unwrap_or(0.0)
+        );
+    }
+    Ok(())
+}
+
+fn run_rollout(a: RolloutArgs) -> Result<(), Box<dyn std::error::Error>> {
+    use graspd::tools;
+    use graspd_sim::env::{EnvSetup, Expert, Task, VecTaskEnv};
+    use graspd_sim::obs::Action;
+    use std::time::Instant;
+
+    let task: Task = a.task.parse()?;
+    let expert = match a.policy.as_str() {
+        "expert" => true,
+        "hold" => false,
+        other => return Err(format!("--policy {other}: expected `expert` or `hold`").into()),
+    };
+    if a.episodes == 0 {
+        return Err("--episodes must be at least 1".into());
+    }
+    let category = task.category();
+    let family = tools::family(category)?;
+    let instances: Vec<tools::Instance> =
+        choose_instances(&family, category, &a.instances)?.into_iter().cloned().collect();
+    let asset = graspd_sim::hand::HandAsset::default_sih()?;
+    let planner = make_planner(&asset, category, a.seed, &a.grasp)?;
+    let threads = a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let t_build = Instant::now();
+    let mut envs = VecTaskEnv::new(&asset, planner, &instances, EnvSetup::new(task), a.envs, threads, a.seed)?;
+    let build_s = t_build.elapsed().as_secs_f64();
+    let n = envs.len();
+    let width = envs.action_layout().len();
+    let mut actions = vec![0.0f32; n * width];
+    let mut experts: Vec<Option<Expert>> = (0..n).map(|_| None).collect();
+    let mut finished = Vec::new();
+    let (mut steps, mut step_s, mut policy_s) = (0u64, 0.0, 0.0);
+    let bar = indicatif::ProgressBar::new(a.episodes as u64);
+    while finished.len() < a.episodes {
+        let t0 = Instant::now();
+        if expert {
+            envs.expert_actions(&mut experts, &mut actions)?;
+        } else {
+            for (i, row) in actions.chunks_exact_mut(width).enumerate() {
+                let env = envs.env(i).ok_or("environment missing")?;
+                row.copy_from_slice(&Action::hold(env.command()?.1).to_vec());
+            }
+        }
+        let t1 = Instant::now();
+        envs.step(&actions)?;
+        policy_s += (t1 - t0).as_secs_f64();
+        step_s += t1.elapsed().as_secs_f64();
+        steps += n as u64;
+        let done = envs.drain_finished();
+        bar.inc(done.len() as u64);
+        finished.extend(done);
+    }
+    bar.finish_and_clear();
+    finished.truncate(a.episodes);
+    let mut per_tool: Vec<(String, usize, usize)> = Vec::new();
+    for s in &finished {
+        match per_tool.iter_mut().find(|(t, _, _)| *t == s.instance) {
+            Some(row) => {
+                row.1 += s.success as usize;
+                row.2 += 1;
+            }
+            None => per_tool.push((s.instance.clone(), s.success as usize, 1)),
+        }
+    }
+    let successes = finished.iter().filter(|s| s.success).count();
+    let v = serde_json::json!({
+        "task": task.name(),
+        "policy": a.policy,
+        "envs": n,
+        "threads": threads,
+        "episodes": finished.len(),
+        "successes": successes,
+        "success_rate": successes as f64 / finished.len() as f64,
+        "per_tool": per_tool.iter().map(|(t, ok, all)| serde_json::json!({"instance": t, "successes": ok, "episodes": all})).collect::<Vec<_>>(),
+        "control_steps": steps,
+        // Stepping alone (physics, observations, rewards, resets with their grasp plans) and with the policy's time.
+        "control_steps_per_s": steps as f64 / step_s,
+        "control_steps_per_s_with_policy": steps as f64 / (step_s + policy_s),
+        "build_s": build_s,
+        "observation_layout": envs.observation_layout().segments(),
+        "action_layout": envs.action_layout().segments(),
+        "results": finished,
+    });
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!("{:<18} {:>9}", "tool", "success");
+        for (t, ok, all) in &per_tool {
+            println!("{t:<18} {:>9}", format!("{ok}/{all}"));
+        }
+        println!(
+            "{} of {} episodes; {} envs on {} threads: {:.0} control steps/s stepping, {:.0} with the policy",
+            successes,
+            finished.len(),
+            n,
+            threads,
+            v["control_steps_per_s"].as_f64().unwrap_or(0.0),
+            v["control_steps_per_s_with_policy"].as_f64().unwrap_or(0.0)
         );
     }
     Ok(())
