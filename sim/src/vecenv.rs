@@ -3,11 +3,12 @@
 //! environment is one task; MuJoCo's step is single-threaded and allocation
 //! free, so the environments scale with the cores).
 //!
-//! The first user is `sim bench`; the trainer's observation/action layout
-//! comes with the daemon's policy sessions. For now an environment runs the
-//! scripted lift ([`ActionStream::Scripted`]) or holds its first targets
-//! ([`ActionStream::Hold`], the "zero action": no change of wrist pose or
-//! joint targets), and restarts at the pre-grasp when the script ends.
+//! Its user is `sim bench`, the physics' throughput alone: an environment
+//! runs the scripted lift ([`ActionStream::Scripted`]) or holds its first
+//! targets ([`ActionStream::Hold`], the "zero action": no change of wrist
+//! pose or joint targets), and restarts at the pre-grasp when the script
+//! ends. The tasks stepped by a policy's actions, with observations and
+//! rewards, are [`crate::env`].
 
 use std::sync::Arc;
 use std::time::Instant;
