@@ -602,3 +602,41 @@ fn polling_mode_serves_spinning_and_event_clients() {
         assert_same_registration(&c.register("mug", &f.views[1].1, TIMEOUT).unwrap(), &f.views[1].2);
     }
 }
+
+/// The Python SDK (client/python), written from proto/README.md alone,
+/// against a daemon: its pytest suite compares its answers with the CLI's
+/// (the same engine: bit for bit) and checks the status of bad inputs.
+/// Its environment comes from scripts/python-sdk.sh (the README's test
+/// command runs it first); without it this test fails, naming the script.
+#[test]
+fn the_python_sdk_answers_as_the_cli() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let python = root.join("client/python/.venv/bin/python");
+    assert!(
+        python.exists(),
+        "{} is missing: run scripts/python-sdk.sh (the README's test command does)",
+        python.display()
+    );
+    let d = Daemon::start("python", "");
+    let f = fixture();
+    let (path, points, expected) = &f.views[0];
+    let _ = path;
+    let fixture_file = d.dir.path().join("sdk_fixture.json");
+    let v = serde_json::json!({
+        "prefix": d.prefix,
+        "points": points,
+        "register": expected,
+        "grasp": f.grasp,
+    });
+    std::fs::write(&fixture_file, serde_json::to_vec(&v).unwrap()).unwrap();
+    let out = Command::new(&python)
+        .args(["-m", "pytest", "-q", "-p", "no:cacheprovider", "client/python/tests"])
+        .current_dir(&root)
+        .env("GRASPD_SDK_FIXTURE", &fixture_file)
+        .output()
+        .expect("the SDK's python runs");
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "the Python SDK's tests failed:\n{text}");
+    // Every test ran against the daemon: none skipped.
+    assert!(text.contains("6 passed") && !text.contains("skipped"), "{text}");
+}
