@@ -635,10 +635,22 @@ impl VecTaskEnv {
             dones: vec![false; n_envs],
             finished: Vec::new(),
         };
-        for i in 0..n_envs {
-            v.reset_env(i)?;
-        }
+        v.reset_all(first_seed)?;
         Ok(v)
+    }
+
+    /// Starts every environment afresh: environment i with seed
+    /// `first_seed + i`, later episodes with the seeds after those. Finished
+    /// summaries not yet drained are kept.
+    pub fn reset_all(&mut self, first_seed: u64) -> Result<(), SimError> {
+        self.next_seed = first_seed;
+        self.dones.fill(false);
+        self.successes.fill(false);
+        self.rewards.fill(0.0);
+        for i in 0..self.envs.len() {
+            self.reset_env(i)?;
+        }
+        Ok(())
     }
 
     fn reset_env(&mut self, i: usize) -> Result<(), SimError> {
