@@ -814,6 +814,23 @@ mod episode_tests {
         assert!(o.return_terms.dist > 0.0 && o.return_terms.kp > 0.0 && o.return_terms.lift > 0.0, "{o:?}");
     }
 
+    /// Seeds 202 and 203 start the hammer toward the board: with the board
+    /// where it stood before (0.16, 0.10) the closing hand met it and the
+    /// hammer was never lifted, on every hammer. Where it stands now they
+    /// are driven like the others.
+    #[test]
+    fn a_hammer_starting_toward_the_board_is_lifted_and_drives_the_nail() {
+        let (asset, mut planner, hammer) = canonical();
+        let mut setup = NailSetup::default();
+        for o in nail_instance(&asset, &mut planner, &hammer, &setup, 202, 2).unwrap() {
+            assert!(o.clearance_after_lift_m > 0.03 && o.success, "{o:?}");
+        }
+        // The old place: not lifted (the failure this layout removes).
+        setup.ranges.board_xy = [0.16, 0.10];
+        let old = nail_instance(&asset, &mut planner, &hammer, &setup, 202, 1).unwrap();
+        assert!(old[0].clearance_after_lift_m < 0.01 && !old[0].success, "{:?}", old[0]);
+    }
+
     /// A hand that never closes leaves the hammer on the table: the same
     /// script strikes thin air and the nail stays where it was.
     #[test]
