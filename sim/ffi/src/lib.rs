@@ -177,8 +177,10 @@ fn guarded(f: impl FnOnce() -> Result<(), String>) -> i32 {
     }
 }
 
-fn handle<'a>(h: *mut EnvHandle) -> Result<&'a mut EnvHandle, String> {
-    // SAFETY: the caller passes a pointer from graspd_env_new that it has not freed.
+/// # Safety
+/// `h` is null or a live handle (the exported functions' callers promise it).
+unsafe fn handle<'a>(h: *mut EnvHandle) -> Result<&'a mut EnvHandle, String> {
+    // SAFETY: the caller's promise above.
     unsafe { h.as_mut() }.ok_or_else(|| "null environment handle".to_owned())
 }
 
@@ -209,8 +211,11 @@ pub unsafe extern "C" fn graspd_env_new(config_json: *const c_char) -> *mut EnvH
 }
 
 /// Frees a handle (null is ignored).
+///
+/// # Safety
+/// `h` is null or a handle from [`graspd_env_new`] not yet freed, used by one thread at a time.
 #[no_mangle]
-pub extern "C" fn graspd_env_free(h: *mut EnvHandle) {
+pub unsafe extern "C" fn graspd_env_free(h: *mut EnvHandle) {
     if !h.is_null() {
         // SAFETY: from graspd_env_new, not freed before (the caller's promise).
         let _ = catch_unwind(AssertUnwindSafe(|| drop(unsafe { Box::from_raw(h) })));
@@ -219,9 +224,12 @@ pub extern "C" fn graspd_env_free(h: *mut EnvHandle) {
 
 /// JSON: task, envs, threads, instances (per environment), observation and
 /// action lengths and layouts, steps per episode. Valid while the handle lives.
+///
+/// # Safety
+/// `h` is null or a handle from [`graspd_env_new`] not yet freed, used by one thread at a time.
 #[no_mangle]
-pub extern "C" fn graspd_env_info(h: *mut EnvHandle) -> *const c_char {
-    match handle(h) {
+pub unsafe extern "C" fn graspd_env_info(h: *mut EnvHandle) -> *const c_char {
+    match unsafe { handle(h) } {
         Ok(h) => h.info.as_ptr(),
         Err(e) => {
             set_error(e);
@@ -231,10 +239,13 @@ pub extern "C" fn graspd_env_info(h: *mut EnvHandle) -> *const c_char {
 }
 
 /// Resets every environment: environment i with seed `first_seed + i`.
+///
+/// # Safety
+/// `h` is null or a handle from [`graspd_env_new`] not yet freed, used by one thread at a time.
 #[no_mangle]
-pub extern "C" fn graspd_env_reset(h: *mut EnvHandle, first_seed: u64) -> i32 {
+pub unsafe extern "C" fn graspd_env_reset(h: *mut EnvHandle, first_seed: u64) -> i32 {
     guarded(|| {
-        let h = handle(h)?;
+        let h = unsafe { handle(h) }?;
         h.envs.reset_all(first_seed).map_err(|e| e.to_string())?;
         h.refresh_flags();
         Ok(())
@@ -244,11 +255,11 @@ pub extern "C" fn graspd_env_reset(h: *mut EnvHandle, first_seed: u64) -> i32 {
 /// One control step with `len` action values (N rows of the action layout).
 ///
 /// # Safety
-/// `actions` points at `len` floats.
+/// `h` as for [`graspd_env_reset`]; `actions` points at `len` floats.
 #[no_mangle]
 pub unsafe extern "C" fn graspd_env_step(h: *mut EnvHandle, actions: *const f32, len: usize) -> i32 {
     guarded(|| {
-        let h = handle(h)?;
+        let h = unsafe { handle(h) }?;
         if actions.is_null() {
             return Err("null actions".into());
         }
@@ -263,11 +274,11 @@ pub unsafe extern "C" fn graspd_env_step(h: *mut EnvHandle, actions: *const f32,
 /// The scripted experts' actions for the next step into `out` (`len` floats: N rows).
 ///
 /// # Safety
-/// `out` points at `len` writable floats.
+/// `h` as for [`graspd_env_reset`]; `out` points at `len` writable floats.
 #[no_mangle]
 pub unsafe extern "C" fn graspd_env_expert_actions(h: *mut EnvHandle, out: *mut f32, len: usize) -> i32 {
     guarded(|| {
-        let h = handle(h)?;
+        let h = unsafe { handle(h) }?;
         if out.is_null() {
             return Err("null output".into());
         }
@@ -278,42 +289,60 @@ pub unsafe extern "C" fn graspd_env_expert_actions(h: *mut EnvHandle, out: *mut 
 }
 
 /// N × observation length floats: the observations after the last step or reset.
+///
+/// # Safety
+/// `h` is null or a handle from [`graspd_env_new`] not yet freed, used by one thread at a time.
 #[no_mangle]
-pub extern "C" fn graspd_env_observations(h: *mut EnvHandle) -> *const f32 {
-    handle(h).map_or(std::ptr::null(), |h| h.envs.observations().as_ptr())
+pub unsafe extern "C" fn graspd_env_observations(h: *mut EnvHandle) -> *const f32 {
+    unsafe { handle(h) }.map_or(std::ptr::null(), |h| h.envs.observations().as_ptr())
 }
 
 /// N × observation length floats: the last observation of the episodes that ended at the last step.
+///
+/// # Safety
+/// `h` is null or a handle from [`graspd_env_new`] not yet freed, used by one thread at a time.
 #[no_mangle]
-pub extern "C" fn graspd_env_final_observations(h: *mut EnvHandle) -> *const f32 {
-    handle(h).map_or(std::ptr::null(), |h| h.envs.final_observations().as_ptr())
+pub unsafe extern "C" fn graspd_env_final_observations(h: *mut EnvHandle) -> *const f32 {
+    unsafe { handle(h) }.map_or(std::ptr::null(), |h| h.envs.final_observations().as_ptr())
 }
 
 /// N floats: the rewards of the last step.
+///
+/// # Safety
+/// `h` is null or a handle from [`graspd_env_new`] not yet freed, used by one thread at a time.
 #[no_mangle]
-pub extern "C" fn graspd_env_rewards(h: *mut EnvHandle) -> *const f32 {
-    handle(h).map_or(std::ptr::null(), |h| h.envs.rewards().as_ptr())
+pub unsafe extern "C" fn graspd_env_rewards(h: *mut EnvHandle) -> *const f32 {
+    unsafe { handle(h) }.map_or(std::ptr::null(), |h| h.envs.rewards().as_ptr())
 }
 
 /// N bytes: 1 where the episode ended at the last step (and was reset).
+///
+/// # Safety
+/// `h` is null or a handle from [`graspd_env_new`] not yet freed, used by one thread at a time.
 #[no_mangle]
-pub extern "C" fn graspd_env_dones(h: *mut EnvHandle) -> *const u8 {
-    handle(h).map_or(std::ptr::null(), |h| h.dones.as_ptr())
+pub unsafe extern "C" fn graspd_env_dones(h: *mut EnvHandle) -> *const u8 {
+    unsafe { handle(h) }.map_or(std::ptr::null(), |h| h.dones.as_ptr())
 }
 
 /// N bytes: 1 where the task's success rule held after the last step.
+///
+/// # Safety
+/// `h` is null or a handle from [`graspd_env_new`] not yet freed, used by one thread at a time.
 #[no_mangle]
-pub extern "C" fn graspd_env_successes(h: *mut EnvHandle) -> *const u8 {
-    handle(h).map_or(std::ptr::null(), |h| h.successes.as_ptr())
+pub unsafe extern "C" fn graspd_env_successes(h: *mut EnvHandle) -> *const u8 {
+    unsafe { handle(h) }.map_or(std::ptr::null(), |h| h.successes.as_ptr())
 }
 
 /// JSON array of the episodes finished since the last call (environment,
 /// instance, seed, success, return, steps, grasp); valid until the next call.
+///
+/// # Safety
+/// `h` is null or a handle from [`graspd_env_new`] not yet freed, used by one thread at a time.
 #[no_mangle]
-pub extern "C" fn graspd_env_drain_finished(h: *mut EnvHandle) -> *const c_char {
+pub unsafe extern "C" fn graspd_env_drain_finished(h: *mut EnvHandle) -> *const c_char {
     let mut out = std::ptr::null();
     guarded(|| {
-        let h = handle(h)?;
+        let h = unsafe { handle(h) }?;
         let text = serde_json::to_string(&h.envs.drain_finished()).map_err(|e| e.to_string())?;
         h.json = CString::new(text).map_err(|e| e.to_string())?;
         out = h.json.as_ptr();
