@@ -28,11 +28,10 @@
 //! with a value that is not finite is refused with an error naming it, and
 //! nothing is stepped.
 
-use std::str::FromStr;
 use std::sync::Arc;
 
 use graspd::hand::HandModel;
-use graspd::tools::{Category, Instance};
+use graspd::tools::Instance;
 use mujoco_rs::prelude::{MjData, MjModel};
 use nalgebra::{Isometry3, Point3};
 use rayon::prelude::*;
@@ -48,50 +47,11 @@ use crate::place::{PlaceController, PlaceSetup, PoseController};
 use crate::plan::{GraspInfo, GraspPlan, GraspPlanner};
 use crate::position::{DrillController, DrillSetup};
 use crate::scene::{Scene, Table};
+pub use crate::task::Task;
 use crate::task::{self, nail_reward, pose_reward, GraspState, NailEpisode, NailState, PoseEpisode, PoseState};
 
 /// One environment's MuJoCo state, on its tool's shared model.
 pub type EnvData = MjData<Arc<MjModel>>;
-
-/// The paper's three tasks.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Task {
-    Place,
-    Position,
-    Nail,
-}
-
-impl Task {
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Place => "place",
-            Self::Position => "position",
-            Self::Nail => "nail",
-        }
-    }
-
-    /// The category of tool the task takes.
-    pub fn category(self) -> Category {
-        match self {
-            Self::Place => Category::Mug,
-            Self::Position => Category::Drill,
-            Self::Nail => Category::Hammer,
-        }
-    }
-}
-
-impl FromStr for Task {
-    type Err = SimError;
-    fn from_str(s: &str) -> Result<Self, SimError> {
-        match s {
-            "place" => Ok(Self::Place),
-            "position" => Ok(Self::Position),
-            "nail" => Ok(Self::Nail),
-            other => Err(SimError::Config { reason: format!("task `{other}`: `place`, `position` or `nail`") }),
-        }
-    }
-}
 
 /// A task's setup: the same as its scripted episodes' (physics, ranges,
 /// fixture; the script is the [`Expert`]'s).
@@ -106,17 +66,17 @@ impl TaskSetup {
     /// The task's defaults, as `sim place|position|nail` runs them.
     pub fn new(task: Task) -> Self {
         match task {
-            Task::Place => Self::Place(PlaceSetup::default()),
-            Task::Position => Self::Position(DrillSetup::default()),
-            Task::Nail => Self::Nail(NailSetup::default()),
+            Task::PlaceMug => Self::Place(PlaceSetup::default()),
+            Task::PositionDrill => Self::Position(DrillSetup::default()),
+            Task::DriveNail => Self::Nail(NailSetup::default()),
         }
     }
 
     pub fn task(&self) -> Task {
         match self {
-            Self::Place(_) => Task::Place,
-            Self::Position(_) => Task::Position,
-            Self::Nail(_) => Task::Nail,
+            Self::Place(_) => Task::PlaceMug,
+            Self::Position(_) => Task::PositionDrill,
+            Self::Nail(_) => Task::DriveNail,
         }
     }
 
@@ -788,7 +748,7 @@ impl VecTaskEnv {
 mod tests {
     use super::*;
     use crate::place::place_instance;
-    use graspd::tools;
+    use graspd::tools::{self, Category};
 
     fn env_on(task: Task, name: &str) -> (HandAsset, GraspPlanner, TaskEnv) {
         let asset = HandAsset::default_sih().unwrap();
@@ -823,9 +783,11 @@ mod tests {
     /// agrees.
     #[test]
     fn the_expert_through_actions_does_each_task() {
-        for (task, name) in
-            [(Task::Place, "mug_canonical"), (Task::Position, "drill_canonical"), (Task::Nail, "hammer_canonical")]
-        {
+        for (task, name) in [
+            (Task::PlaceMug, "mug_canonical"),
+            (Task::PositionDrill, "drill_canonical"),
+            (Task::DriveNail, "hammer_canonical"),
+        ] {
             let (_, mut planner, mut env) = env_on(task, name);
             assert_eq!(env.steps_per_episode(), 300);
             for seed in [100, 101] {
@@ -834,7 +796,7 @@ mod tests {
                 assert!(success, "{task:?} seed {seed}: return {ret:.1}");
                 let summary = env.summary(0).unwrap();
                 assert!(summary.success && (summary.episode_return - ret).abs() < 1e-6, "{summary:?}");
-                if task != Task::Nail {
+                if task != Task::DriveNail {
                     // 100 a step while the rule holds: at least a second of it.
                     assert!(ret > 100.0 * 30.0, "{task:?} seed {seed}: return {ret:.1}");
                 }
@@ -852,7 +814,7 @@ mod tests {
     /// carries the episode's goal and the hand where it started.
     #[test]
     fn a_holding_policy_moves_nothing() {
-        let (_, mut planner, mut env) = env_on(Task::Place, "mug_canonical");
+        let (_, mut planner, mut env) = env_on(Task::PlaceMug, "mug_canonical");
         env.reset(&mut planner, 7).unwrap();
         let start = env.tool_pose().unwrap();
         let (wrist0, q0) = env.command().unwrap();
@@ -883,7 +845,7 @@ mod tests {
     /// A policy's bad output is refused, naming it, and nothing is stepped.
     #[test]
     fn bad_actions_are_refused() {
-        let (asset, mut planner, mut env) = env_on(Task::Place, "mug_canonical");
+        let (asset, mut planner, mut env) = env_on(Task::PlaceMug, "mug_canonical");
         let n = env.action_layout().len();
         assert!(env.step(&vec![0.0; n]).is_err(), "no episode yet");
         env.reset(&mut planner, 1).unwrap();
@@ -904,7 +866,7 @@ mod tests {
         }
         // The wrong tool for the task is refused.
         let drill = tools::instance(Category::Drill, "drill_canonical").unwrap();
-        let err = TaskEnv::new(&asset, &mut planner, &drill, EnvSetup::new(Task::Place)).err().unwrap().to_string();
+        let err = TaskEnv::new(&asset, &mut planner, &drill, EnvSetup::new(Task::PlaceMug)).err().unwrap().to_string();
         assert!(err.contains("place takes a mug"), "{err}");
     }
 
@@ -916,7 +878,8 @@ mod tests {
         let mugs = [tools::instance(Category::Mug, "mug_train_03").unwrap()];
         let run = |threads: usize| {
             let planner = GraspPlanner::new(asset.model(), Category::Mug, 0).unwrap();
-            let mut envs = VecTaskEnv::new(&asset, planner, &mugs, EnvSetup::new(Task::Place), 3, threads, 40).unwrap();
+            let mut envs =
+                VecTaskEnv::new(&asset, planner, &mugs, EnvSetup::new(Task::PlaceMug), 3, threads, 40).unwrap();
             let mut experts: Vec<Option<Expert>> = (0..3).map(|_| None).collect();
             let mut actions = vec![0.0; 3 * envs.action_layout().len()];
             let mut rewards = Vec::new();
@@ -945,7 +908,7 @@ mod tests {
         let planner = GraspPlanner::new(asset.model(), Category::Mug, 0).unwrap();
         let mugs: Vec<Instance> =
             ["mug_canonical", "mug_train_00"].iter().map(|n| tools::instance(Category::Mug, n).unwrap()).collect();
-        let mut envs = VecTaskEnv::new(&asset, planner, &mugs, EnvSetup::new(Task::Place), 3, 2, 10).unwrap();
+        let mut envs = VecTaskEnv::new(&asset, planner, &mugs, EnvSetup::new(Task::PlaceMug), 3, 2, 10).unwrap();
         let (n, a, o) = (envs.len(), envs.action_layout().len(), envs.observation_layout().len());
         assert_eq!(envs.observations().len(), n * o);
         let mut actions = vec![0.0f32; n * a];

@@ -314,20 +314,7 @@ fn choose_instances<'a>(
     category: graspd::tools::Category,
     which: &str,
 ) -> Result<Vec<&'a graspd::tools::Instance>, Box<dyn std::error::Error>> {
-    use graspd::tools::Split;
-    Ok(match which {
-        "canonical" => family.iter().filter(|i| i.split == Split::Canonical).collect(),
-        "train" => family.iter().filter(|i| i.split == Split::Train).collect(),
-        "test" => family.iter().filter(|i| i.split == Split::Test).collect(),
-        "all" => family.iter().filter(|i| i.split != Split::Test).collect(),
-        name => {
-            let found: Vec<_> = family.iter().filter(|i| i.name == name).collect();
-            if found.is_empty() {
-                return Err(format!("no {category} instance `{name}` (canonical, train, test, all, or a name)").into());
-            }
-            found
-        }
-    })
+    Ok(graspd_sim::plan::choose_instances(family, category, which)?)
 }
 
 /// The grasp planner the grasp arguments ask for: in-process, or connected

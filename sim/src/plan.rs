@@ -56,6 +56,30 @@ pub fn spaces_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/spaces")
 }
 
+/// The instances of `family` (of `category`) that `which` names:
+/// `canonical`, `train`, `test`, `all` (canonical and train: the tools with
+/// a training latent) or one instance's name.
+pub fn choose_instances<'a>(
+    family: &'a [Instance],
+    category: Category,
+    which: &str,
+) -> Result<Vec<&'a Instance>, SimError> {
+    let by = |keep: &dyn Fn(Split) -> bool| family.iter().filter(|i| keep(i.split)).collect::<Vec<_>>();
+    let chosen = match which {
+        "canonical" => by(&|s| s == Split::Canonical),
+        "train" => by(&|s| s == Split::Train),
+        "test" => by(&|s| s == Split::Test),
+        "all" => by(&|s| s != Split::Test),
+        name => family.iter().filter(|i| i.name == name).collect(),
+    };
+    if chosen.is_empty() {
+        return Err(SimError::Config {
+            reason: format!("no {category} instance `{which}` (canonical, train, test, all, or a name)"),
+        });
+    }
+    Ok(chosen)
+}
+
 /// Where an episode's grasp comes from (module docs).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]

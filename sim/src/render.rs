@@ -34,6 +34,7 @@ use serde::Serialize;
 
 use crate::engine::SimError;
 use crate::scene::Scene;
+use crate::task::Task;
 
 /// What a geom shows, for its colour.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -561,42 +562,10 @@ fn camera_axes(azimuth_deg: f64, elevation_deg: f64) -> [Vector3<f64>; 3] {
     [forward, up, forward.cross(&up)]
 }
 
-/// The task of a strip.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum StripTask {
-    PlaceMug,
-    PositionDrill,
-    DriveNail,
-}
-
-impl std::str::FromStr for StripTask {
-    type Err = SimError;
-    fn from_str(s: &str) -> Result<Self, SimError> {
-        match s {
-            "place" => Ok(Self::PlaceMug),
-            "position" => Ok(Self::PositionDrill),
-            "nail" => Ok(Self::DriveNail),
-            other => Err(SimError::Config { reason: format!("task `{other}`: place, position or nail") }),
-        }
-    }
-}
-
-impl StripTask {
-    pub fn category(self) -> graspd::tools::Category {
-        use graspd::tools::Category;
-        match self {
-            Self::PlaceMug => Category::Mug,
-            Self::PositionDrill => Category::Drill,
-            Self::DriveNail => Category::Hammer,
-        }
-    }
-}
-
 /// What `sim strip` draws.
 #[derive(Clone, Debug)]
 pub struct StripRequest {
-    pub task: StripTask,
+    pub task: Task,
     /// An instance of the task's category (default: its canonical).
     pub instance: Option<String>,
     pub seed: u64,
@@ -623,7 +592,7 @@ pub struct StripFrame {
 /// What `sim strip` wrote.
 #[derive(Clone, Debug, Serialize)]
 pub struct StripOutput {
-    pub task: StripTask,
+    pub task: Task,
     pub instance: String,
     pub seed: u64,
     /// The episode's success by the task's rule.
@@ -687,19 +656,19 @@ pub fn make_strip(
 
     let (run, recording) = record(|| -> Result<(bool, Option<Isometry3<f64>>), SimError> {
         Ok(match request.task {
-            StripTask::PlaceMug => {
+            Task::PlaceMug => {
                 let setup = crate::place::PlaceSetup::default();
                 let goal = setup.ranges.sample(request.seed, table_z).goal;
                 let o = crate::place::place_instance(&asset, &mut planner, instance, &setup, request.seed, 1)?;
                 (o.first().is_some_and(|o| o.success), Some(goal))
             }
-            StripTask::PositionDrill => {
+            Task::PositionDrill => {
                 let setup = crate::position::DrillSetup::default();
                 let goal = setup.ranges.sample(request.seed, table_z).goal;
                 let o = crate::position::position_instance(&asset, &mut planner, instance, &setup, request.seed, 1)?;
                 (o.first().is_some_and(|o| o.success), Some(goal))
             }
-            StripTask::DriveNail => {
+            Task::DriveNail => {
                 let setup = crate::nail::NailSetup::default();
                 let o = crate::nail::nail_instance(&asset, &mut planner, instance, &setup, request.seed, 1)?;
                 (o.first().is_some_and(|o| o.success), None)
@@ -898,7 +867,7 @@ mod tests {
     fn a_test_tool_is_drawn_with_its_grasp_from_the_camera() {
         let dir = tempfile::tempdir().unwrap();
         let mut request = StripRequest {
-            task: StripTask::PlaceMug,
+            task: Task::PlaceMug,
             instance: Some("mug_test_01".into()),
             seed: 0,
             start: crate::plan::StartMode::PreGrasp,
@@ -928,7 +897,7 @@ mod tests {
     fn make_strip_writes_the_frames_and_the_strip() {
         let dir = tempfile::tempdir().unwrap();
         let request = StripRequest {
-            task: StripTask::PlaceMug,
+            task: Task::PlaceMug,
             instance: None,
             seed: 0,
             start: crate::plan::StartMode::PreGrasp,

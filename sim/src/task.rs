@@ -344,6 +344,50 @@ pub fn pose_reward(s: &PoseState) -> PoseReward {
     }
 }
 
+/// The paper's three tasks. `sim place|position|nail`, `--task` and
+/// configurations name them by [`Task::name`]; reports (JSON) by their
+/// serialised snake-case names (`place_mug`, `position_drill`, `drive_nail`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Task {
+    PlaceMug,
+    PositionDrill,
+    DriveNail,
+}
+
+impl Task {
+    /// The short name: `place`, `position` or `nail`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::PlaceMug => "place",
+            Self::PositionDrill => "position",
+            Self::DriveNail => "nail",
+        }
+    }
+
+    /// The category of tool the task takes.
+    pub fn category(self) -> graspd::tools::Category {
+        use graspd::tools::Category;
+        match self {
+            Self::PlaceMug => Category::Mug,
+            Self::PositionDrill => Category::Drill,
+            Self::DriveNail => Category::Hammer,
+        }
+    }
+}
+
+impl std::str::FromStr for Task {
+    type Err = SimError;
+    fn from_str(s: &str) -> Result<Self, SimError> {
+        match s {
+            "place" => Ok(Self::PlaceMug),
+            "position" => Ok(Self::PositionDrill),
+            "nail" => Ok(Self::DriveNail),
+            other => Err(SimError::Config { reason: format!("task `{other}`: `place`, `position` or `nail`") }),
+        }
+    }
+}
+
 /// Where the hammer starts and where the board with the nail stands.
 ///
 /// The defaults: the hammer lies flat on the table as in its canonical

@@ -16,11 +16,11 @@ use std::cell::RefCell;
 use std::ffi::{c_char, CStr, CString};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
-use graspd::tools::{self, Instance, Split};
+use graspd::tools::{self, Category, Instance};
 use graspd_sim::camera::{LabFrame, SceneCamera};
 use graspd_sim::env::{EnvSetup, Expert, Task, VecTaskEnv};
 use graspd_sim::hand::HandAsset;
-use graspd_sim::plan::{GraspFrom, GraspPlanner, StartMode};
+use graspd_sim::plan::{choose_instances, GraspFrom, GraspPlanner, StartMode};
 use serde::Deserialize;
 
 thread_local! {
@@ -69,27 +69,15 @@ fn default_envs() -> usize {
     16
 }
 
-fn choose(family: &[Instance], category: &str, which: &Instances) -> Result<Vec<Instance>, String> {
-    let pick = |name: &str| -> Result<Vec<Instance>, String> {
-        let by_split = |s: &dyn Fn(Split) -> bool| family.iter().filter(|i| s(i.split)).cloned().collect();
-        Ok(match name {
-            "canonical" => by_split(&|s| s == Split::Canonical),
-            "train" => by_split(&|s| s == Split::Train),
-            "test" => by_split(&|s| s == Split::Test),
-            "all" => by_split(&|s| s != Split::Test),
-            name => {
-                let found: Vec<Instance> = family.iter().filter(|i| i.name == name).cloned().collect();
-                if found.is_empty() {
-                    return Err(format!("no {category} instance `{name}` (canonical, train, test, all, or a name)"));
-                }
-                found
-            }
-        })
+fn choose(family: &[Instance], category: Category, which: &Instances) -> Result<Vec<Instance>, String> {
+    let names = match which {
+        Instances::One(name) => std::slice::from_ref(name),
+        Instances::Many(names) => names.as_slice(),
     };
-    let out: Vec<Instance> = match which {
-        Instances::One(name) => pick(name)?,
-        Instances::Many(names) => names.iter().map(|n| pick(n)).collect::<Result<Vec<_>, _>>()?.concat(),
-    };
+    let mut out = Vec::new();
+    for name in names {
+        out.extend(choose_instances(family, category, name).map_err(|e| e.to_string())?.into_iter().cloned());
+    }
     if out.is_empty() {
         return Err("no instances chosen".into());
     }
@@ -114,8 +102,7 @@ impl EnvHandle {
         let start: StartMode = c.start.as_deref().unwrap_or("pregrasp").parse().map_err(|e| format!("{e}"))?;
         let category = task.category();
         let family = tools::family(category).map_err(|e| e.to_string())?;
-        let instances =
-            choose(&family, category.name(), c.instances.as_ref().unwrap_or(&Instances::One("all".into())))?;
+        let instances = choose(&family, category, c.instances.as_ref().unwrap_or(&Instances::One("all".into())))?;
         let asset = HandAsset::default_sih().map_err(|e| e.to_string())?;
         let planner = GraspPlanner::new(asset.model(), category, c.seed).map_err(|e| e.to_string())?.with_start(start);
         let planner = match from {
