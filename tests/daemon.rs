@@ -639,4 +639,25 @@ fn the_python_sdk_answers_as_the_cli() {
     assert!(out.status.success(), "the Python SDK's tests failed:\n{text}");
     // Every test ran against the daemon: none skipped.
     assert!(text.contains("6 passed") && !text.contains("skipped"), "{text}");
+
+    // A Python client started before its daemon waits for it (connect_timeout_s).
+    let prefix = unique_prefix("python_wait");
+    let script =
+        "import sys, graspd_client as g\nc = g.Client(sys.argv[1], connect_timeout_s=60)\nprint(c.health()['serving'])";
+    let waiter = Command::new(&python)
+        .args(["-c", script, &prefix])
+        .current_dir(&root)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("the SDK's python runs");
+    std::thread::sleep(Duration::from_millis(500));
+    let _late = Daemon::start_with_prefix(&prefix, "", &[]);
+    let out = waiter.wait_with_output().unwrap();
+    assert!(
+        out.status.success() && String::from_utf8_lossy(&out.stdout).trim() == "True",
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
 }

@@ -198,10 +198,11 @@ class Client:
 
     Not thread-safe: one Client per thread. ``timeout_s`` is the deadline of
     calls that take none; clouds up to ``initial_max_points`` fit the first
-    shared-memory segment, larger ones grow it once.
+    shared-memory segment, larger ones grow it once; ``connect_timeout_s``:
+    how long to wait for a daemon that does not serve the prefix yet.
     """
 
-    def __init__(self, prefix=proto.DEFAULT_PREFIX, timeout_s=5.0, initial_max_points=32 * 1024):
+    def __init__(self, prefix=proto.DEFAULT_PREFIX, timeout_s=5.0, initial_max_points=32 * 1024, connect_timeout_s=0.0):
         proto.check_layouts()
         self.prefix = prefix
         self.timeout_s = timeout_s
@@ -211,7 +212,18 @@ class Client:
         self._ids = itertools.count(1)
         self._daemon_polls = None
         self.last_call = {}
-        health = self.health()
+        # A daemon that is not serving yet (started in any order with its
+        # clients) is waited for up to connect_timeout_s.
+        give_up = time.monotonic() + connect_timeout_s
+        while True:
+            try:
+                health = self.health()
+                break
+            except GraspdError as e:
+                if e.code != StatusCode.UNAVAILABLE or time.monotonic() >= give_up:
+                    self.close()
+                    raise
+                time.sleep(0.05)
         self._daemon_polls = health["waiting"] == "poll"
 
     def __enter__(self):

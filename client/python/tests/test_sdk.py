@@ -10,6 +10,7 @@ tests are skipped, saying so.
 import json
 import math
 import os
+import time
 
 import numpy as np
 import pytest
@@ -107,3 +108,8 @@ def test_a_prefix_nobody_serves_is_unavailable():
     with pytest.raises(gc.GraspdError) as e:
         gc.Client("graspd_nobody_serves_this_prefix", timeout_s=1.0)
     assert e.value.code == gc.StatusCode.UNAVAILABLE
+    # Waiting for a daemon that never comes ends with the same, after the wait.
+    t0 = time.monotonic()
+    with pytest.raises(gc.GraspdError) as e:
+        gc.Client("graspd_nobody_serves_this_prefix", connect_timeout_s=0.3)
+    assert e.value.code == gc.StatusCode.UNAVAILABLE and time.monotonic() - t0 >= 0.3
