@@ -652,7 +652,7 @@ fn the_python_sdk_answers_as_the_cli() {
         .spawn()
         .expect("the SDK's python runs");
     std::thread::sleep(Duration::from_millis(500));
-    let _late = Daemon::start_with_prefix(&prefix, "", &[]);
+    let late = Daemon::start_with_prefix(&prefix, "", &[]);
     let out = waiter.wait_with_output().unwrap();
     assert!(
         out.status.success() && String::from_utf8_lossy(&out.stdout).trim() == "True",
@@ -660,4 +660,38 @@ fn the_python_sdk_answers_as_the_cli() {
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
     );
+
+    // A daemon killed with a request pending: the client waits for the next
+    // one and resends, and gets the same answer.
+    let script = "import sys, json, numpy as np, graspd_client as g\n\
+                  f = json.load(open(sys.argv[2]))\n\
+                  c = g.Client(sys.argv[1], timeout_s=60)\n\
+                  print('connected', flush=True)\n\
+                  sys.stdin.readline()\n\
+                  r = c.register('mug', np.array(f['points'], dtype=np.float32), timeout_s=60)\n\
+                  print(json.dumps(r['latent']))";
+    let mut child = Command::new(&python)
+        .args(["-c", script, &prefix, fixture_file.to_str().unwrap()])
+        .current_dir(&root)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("the SDK's python runs");
+    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
+    assert_eq!(lines.next().and_then(Result::ok).as_deref(), Some("connected"));
+    late.signal("STOP");
+    use std::io::Write;
+    child.stdin.take().unwrap().write_all(b"go\n").unwrap();
+    std::thread::sleep(Duration::from_millis(400));
+    late.signal("KILL");
+    let _next = Daemon::start_with_prefix(&prefix, "", &[]);
+    let answer = lines.next().and_then(Result::ok).unwrap_or_default();
+    let status = child.wait().unwrap();
+    let mut err = String::new();
+    let _ = std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut err);
+    let latent: Vec<f64> = serde_json::from_str(&answer)
+        .unwrap_or_else(|e| panic!("no answer after the restart ({e}): {answer:?} {status:?} {err}"));
+    assert_eq!(latent, floats(&expected["latent"]));
+    assert!(status.success(), "{err}");
 }

@@ -211,6 +211,7 @@ class Client:
         self._methods = {}
         self._ids = itertools.count(1)
         self._daemon_polls = None
+        self._daemon_pid = 0
         self.last_call = {}
         # A daemon that is not serving yet (started in any order with its
         # clients) is waited for up to connect_timeout_s.
@@ -224,7 +225,6 @@ class Client:
                     self.close()
                     raise
                 time.sleep(0.05)
-        self._daemon_polls = health["waiting"] == "poll"
 
     def __enter__(self):
         return self
@@ -235,15 +235,23 @@ class Client:
     def close(self):
         """Releases the ports and the node (their shared memory is removed at once,
         not left for the daemon to clean up as a dead peer's)."""
-        for m in self._methods.values():
-            m.close()
-        self._methods.clear()
+        self.close_ports()
         self._node = None
 
     # -- methods ------------------------------------------------------------
 
     def health(self):
         h = self._call("health", proto.NoPayload, proto.HealthResponse, self._header(), None, self.timeout_s)
+        # The daemon's pid, for noticing its death mid-request; only where
+        # this process sees it (not across PID namespaces).
+        try:
+            os.kill(h.pid, 0)
+            self._daemon_pid = h.pid
+        except PermissionError:
+            self._daemon_pid = h.pid
+        except (ProcessLookupError, OverflowError, ValueError):
+            self._daemon_pid = 0
+        self._daemon_polls = h.waiting == 1
         return {
             "serving": h.serving == 1,
             "draining": h.serving == 2,
@@ -362,45 +370,14 @@ class Client:
         deadline = t0 + timeout_s
         header.request_id = next(self._ids)
         header.deadline_unix_ns = time.time_ns() + int(timeout_s * 1e9)
-        m = self._method(method, request, response)
-        try:
-            if points is None:
-                req = m.port.loan_uninit()
-            else:
-                n, address, keep = _points_array(points)
-                try:
-                    req = m.port.loan_slice_uninit(n)
-                except Exception as e:
-                    raise GraspdError(StatusCode.RESOURCE_EXHAUSTED,
-                                      f"cannot loan {n} points of shared memory: {e}") from e
-                if n:
-                    ctypes.memmove(req.payload_ptr, address, n * ctypes.sizeof(proto.Point))
-                del keep
-            ctypes.memmove(req.user_header_ptr, ctypes.addressof(header), ctypes.sizeof(header))
-            req = req.assume_init()
-            t_sent = time.perf_counter()
-            pending = req.send()
-        except GraspdError:
-            raise
-        except Exception as e:
-            self._drop(method)
-            raise GraspdError(StatusCode.UNAVAILABLE, f"{method}: send failed ({e})") from e
-        if not self._daemon_polls:
-            m.notifier.notify()
-        spins = 0
+        cloud = None if points is None else _points_array(points)
         while True:
-            r = pending.receive()
+            r, t_sent = self._send_and_wait(method, request, response, header, cloud, deadline, timeout_s)
             if r is not None:
                 break
-            now = time.perf_counter()
-            if now > deadline:
-                raise GraspdError(StatusCode.DEADLINE_EXCEEDED, f"{method}: no answer within {timeout_s} s")
-            spins += 1
-            if spins > 2000:
-                if not pending.is_connected:
-                    self._drop(method)
-                    raise GraspdError(StatusCode.UNAVAILABLE, f"{method}: the daemon went away")
-                time.sleep(50e-6)
+            # The daemon died with the request: every method is idempotent,
+            # so wait for the next daemon (within the deadline) and resend.
+            self._reconnect(deadline, method)
         rtt = time.perf_counter() - t_sent
         rh = ctypes.cast(r.user_header_ptr, ctypes.POINTER(proto.ResponseHeader)).contents
         if rh.request_id != header.request_id:
@@ -414,6 +391,89 @@ class Client:
         ctypes.memmove(ctypes.addressof(body), r.payload_ptr, ctypes.sizeof(response))
         r.delete()
         return body
+
+    def _send_and_wait(self, method, request, response, header, cloud, deadline, timeout_s):
+        """One send and its wait: (response, send time), or (None, _) when the daemon died meanwhile."""
+        m = self._method(method, request, response)
+        try:
+            if cloud is None:
+                req = m.port.loan_uninit()
+            else:
+                n, address, _keep = cloud
+                try:
+                    req = m.port.loan_slice_uninit(n)
+                except Exception as e:
+                    raise GraspdError(StatusCode.RESOURCE_EXHAUSTED,
+                                      f"cannot loan {n} points of shared memory: {e}") from e
+                if n:
+                    ctypes.memmove(req.payload_ptr, address, n * ctypes.sizeof(proto.Point))
+            ctypes.memmove(req.user_header_ptr, ctypes.addressof(header), ctypes.sizeof(header))
+            req = req.assume_init()
+            t_sent = time.perf_counter()
+            pending = req.send()
+        except GraspdError:
+            raise
+        except Exception as e:
+            self._drop(method)
+            raise GraspdError(StatusCode.UNAVAILABLE, f"{method}: send failed ({e})") from e
+        if not self._daemon_polls:
+            m.notifier.notify()
+        spins, next_check = 0, t_sent + 0.2
+        while True:
+            r = pending.receive()
+            if r is not None:
+                return r, t_sent
+            now = time.perf_counter()
+            if now > deadline:
+                raise GraspdError(StatusCode.DEADLINE_EXCEEDED, f"{method}: no answer within {timeout_s} s")
+            spins += 1
+            if spins > 2000:
+                time.sleep(50e-6)
+            # A daemon killed mid-request leaves the request pending for ever
+            # (iceoryx2 still reports it connected): look at its process.
+            if now > next_check:
+                next_check = now + 0.2
+                if not self._daemon_alive():
+                    self.close_ports()
+                    return None, t_sent
+
+    def _daemon_alive(self):
+        """False only when the daemon's process (pid from Health) is known to be gone."""
+        if not self._daemon_pid:
+            return True
+        try:
+            os.kill(self._daemon_pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            pass
+        # A killed daemon its parent has not reaped yet still answers kill(0):
+        # a zombie (Linux's /proc says so) is as dead as a gone one.
+        try:
+            with open(f"/proc/{self._daemon_pid}/stat", "rb") as f:
+                state = f.read().rsplit(b")", 1)[1].split()[0]
+            return state not in (b"Z", b"X")
+        except (OSError, IndexError):
+            return True
+
+    def _reconnect(self, deadline, method):
+        """Waits for a daemon to serve the prefix again (Health), until `deadline`."""
+        while True:
+            try:
+                self.health()
+                return
+            except GraspdError as e:
+                if e.code != StatusCode.UNAVAILABLE:
+                    raise
+            if time.perf_counter() > deadline:
+                raise GraspdError(StatusCode.UNAVAILABLE, f"{method}: the daemon went away and no other came in time")
+            time.sleep(0.05)
+
+    def close_ports(self):
+        """Drops every method's ports (they are reopened on the next call)."""
+        for m in self._methods.values():
+            m.close()
+        self._methods.clear()
 
     def _drop(self, method):
         m = self._methods.pop(method, None)
