@@ -528,6 +528,11 @@ impl Expert {
     }
 }
 
+/// The most environments (and threads) one batch takes: each holds a
+/// MuJoCo state of about 1 MB, and a request for millions is a mistake to
+/// refuse, not memory to run out of.
+pub const MAX_ENVS: usize = 4096;
+
 /// N environments stepped in parallel (module docs).
 pub struct VecTaskEnv {
     envs: Vec<TaskEnv>,
@@ -561,6 +566,11 @@ impl VecTaskEnv {
     ) -> Result<Self, SimError> {
         if n_envs == 0 || instances.is_empty() {
             return Err(SimError::Config { reason: "at least one environment and one tool are needed".into() });
+        }
+        if n_envs > MAX_ENVS || threads > MAX_ENVS {
+            return Err(SimError::Config {
+                reason: format!("{n_envs} environments on {threads} threads: at most {MAX_ENVS} of either"),
+            });
         }
         setup.task.validate()?;
         let pool = rayon::ThreadPoolBuilder::new()
@@ -921,6 +931,16 @@ mod tests {
         let err = envs.step(&bad).unwrap_err().to_string();
         assert!(err.contains("environment 1"), "{err}");
         assert!(envs.step(&actions[..a]).is_err());
+        let huge = VecTaskEnv::new(
+            &asset,
+            GraspPlanner::new(asset.model(), Category::Mug, 0).unwrap(),
+            &mugs,
+            EnvSetup::new(Task::PlaceMug),
+            1 << 40,
+            2,
+            0,
+        );
+        assert!(huge.err().is_some_and(|e| e.to_string().contains("at most 4096")));
         assert_eq!(envs.env(0).unwrap().time_s(), 0.0);
         let first_goals: Vec<f32> = (0..n).map(|i| envs.observations()[i * o + o - 7]).collect();
         for k in 0..300 {

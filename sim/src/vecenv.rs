@@ -76,6 +76,14 @@ impl VecLift {
         if n_envs == 0 {
             return Err(SimError::Config { reason: "at least one environment is needed".into() });
         }
+        if n_envs > crate::env::MAX_ENVS || threads > crate::env::MAX_ENVS {
+            return Err(SimError::Config {
+                reason: format!(
+                    "{n_envs} environments on {threads} threads: at most {} of either",
+                    crate::env::MAX_ENVS
+                ),
+            });
+        }
         if !(control_hz.is_finite() && control_hz > 0.0) {
             return Err(SimError::Config { reason: format!("control rate {control_hz} Hz is not positive") });
         }
