@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # Makes the Python SDK's virtual environment, client/python/.venv (gitignored):
 # iceoryx2 0.10.0 (the same release as the daemon's Rust crate), NumPy and
-# pytest from PyPI, and the SDK itself (graspd_client) installed from
-# client/python in editable mode, so its tests and a user's scripts import it.
+# pytest from PyPI, and the SDK itself (graspd_client, from client/python) and
+# the simulator's Python environments (graspd_sim, from sim/python; it loads
+# target/release/libgraspd_sim_ffi.so) installed in editable mode, so their
+# tests and a user's scripts import them.
 #
 # Idempotent: an environment that already imports everything is kept. Needs
 # python3 (3.9+) with the venv module and network access to PyPI on the
@@ -13,10 +15,10 @@ cd "$(dirname "$0")/.."
 
 PY="${PYTHON:-python3}"
 VENV=client/python/.venv
-STAMP="$VENV/.graspd-sdk-1"
+STAMP="$VENV/.graspd-sdk-2"
 
 if [ -x "$VENV/bin/python" ] && [ -f "$STAMP" ] \
-    && "$VENV/bin/python" -c "import iceoryx2, numpy, pytest, graspd_client" 2>/dev/null; then
+    && "$VENV/bin/python" -c "import iceoryx2, numpy, pytest, graspd_client, graspd_sim" 2>/dev/null; then
     echo "Python SDK environment: $(cd "$VENV" && pwd)" >&2
     exit 0
 fi
@@ -32,9 +34,9 @@ if ! "$PY" -m venv "$VENV" 2>/dev/null; then
         exit 1
     fi
 fi
-echo "installing iceoryx2==0.10.0, numpy, pytest and graspd_client into $VENV ..." >&2
+echo "installing iceoryx2==0.10.0, numpy, pytest, graspd_client and graspd_sim into $VENV ..." >&2
 "$VENV/bin/python" -m pip install -q --upgrade pip >&2
 "$VENV/bin/python" -m pip install -q "iceoryx2==0.10.0" numpy pytest >&2
-"$VENV/bin/python" -m pip install -q -e client/python >&2
+"$VENV/bin/python" -m pip install -q -e client/python -e sim/python >&2
 touch "$STAMP"
 echo "Python SDK environment: $(cd "$VENV" && pwd)" >&2
