@@ -433,7 +433,6 @@ pub fn non_rigid_with_landmarks(
     let mut sigma2 = initial_sigma2(&x, &y);
     let xx: Vec<f64> = x.iter().map(|p| dot(p, p)).collect();
     let (mut prev, mut iterations, mut converged) = (f64::INFINITY, 0, false);
-    let mut dpq = Mat::<f64>::zeros(m, k);
     while iterations < opts.em.max_iters {
         iterations += 1;
         estep.run(&y, sigma2, opts.em.w, &mut post);
@@ -471,11 +470,7 @@ pub fn non_rigid_with_landmarks(
             }
             None => {
                 direct_solves += 1;
-                for j in 0..k {
-                    for i in 0..m {
-                        dpq[(i, j)] = p1[i] * kernel.q[(i, j)];
-                    }
-                }
+                let dpq = Mat::from_fn(m, k, |i, j| p1[i] * kernel.q[(i, j)]);
                 let mut a = kernel.q.transpose() * &dpq;
                 for (j, l) in kernel.lambda.iter().enumerate() {
                     a[(j, j)] += s / l.max(1e-300);
@@ -514,11 +509,7 @@ pub fn non_rigid_with_landmarks(
         }
     }
     let w = &kernel.q * &lz;
-    if std::env::var_os("GRASPD_CPD_TRACE").is_some() {
-        eprintln!(
-            "cpd: {iterations} EM iterations, rank {k}, {cg_iterations} CG iterations, {direct_solves} direct solves"
-        );
-    }
+    tracing::debug!(iterations, rank = k, cg_iterations, direct_solves, "cpd M-steps");
     let moved = to_points(&y.iter().map(|p| norm.inverse(p)).collect::<Vec<_>>());
     Ok(NonRigidResult {
         moved,
