@@ -366,10 +366,10 @@ impl EStep {
         let mut log_den = LogSum::default();
         for (j, d) in self.den.iter_mut().enumerate() {
             let sum = *d;
-            let den = sum + c;
-            out.pt1[j] = sum / den;
+            let (den, inv) = row_total(sum, c);
+            out.pt1[j] = sum * inv;
             log_den.add(den);
-            *d = 1.0 / den;
+            *d = inv;
         }
         out.neg_log_likelihood -= log_den.total();
         for i in 0..y.len() {
@@ -552,9 +552,8 @@ fn dense_rows(
             }
         }
         let sum = part[0] + part[1] + part[2] + part[3] + tail;
-        let den = sum + c;
+        let (den, inv) = row_total(sum, c);
         log_den.add(den);
-        let inv = 1.0 / den;
         out.pt1[j] = sum * inv;
         let (w0, w1, w2) = (xn[0] * inv, xn[1] * inv, xn[2] * inv);
         for ((((r, a), b), c), d) in
@@ -751,15 +750,30 @@ fn dense_rows_f32<const FMA: bool, const STATS: bool>(
     out.neg_log_likelihood -= log_den.total();
 }
 
+/// A data point's row total with the outlier term `c`, and its inverse.
+/// With no outlier term (w = 0) a row can sum to zero: its only listed pairs
+/// lie past the cutoff's skin and underflowed (in f32 beyond about 13σ).
+/// Such a point is left out, as an outlier would be (inverse 0), where 1/0
+/// would make every posterior sum NaN; its likelihood term is the smallest
+/// positive total, so the objective stays finite.
+#[inline(always)]
+fn row_total(sum: f64, c: f64) -> (f64, f64) {
+    let den = sum + c;
+    if den > 0.0 {
+        (den, 1.0 / den)
+    } else {
+        (f64::MIN_POSITIVE, 0.0)
+    }
+}
+
 /// Closes one data point's row of the dense f32 sums from its per-lane
 /// partial totals: the row total plus the outlier term `c` goes into the
 /// likelihood; returns the point's Pᵀ1 entry and the inverse of that total.
 #[inline(always)]
 fn close_row(part: &[f32; LANES], c: f64, log_den: &mut LogSum) -> (f64, f64) {
     let sum = part.iter().map(|&v| v as f64).sum::<f64>();
-    let den = sum + c;
+    let (den, inv) = row_total(sum, c);
     log_den.add(den);
-    let inv = 1.0 / den;
     (sum * inv, inv)
 }
 
@@ -771,10 +785,10 @@ fn invert_row_totals(den: &mut [f32], c: f64, pt1: &mut [f64]) -> LogSum {
     let mut log_den = LogSum::default();
     for (d, share) in den.iter_mut().zip(pt1.iter_mut()) {
         let sum = *d as f64;
-        let total = sum + c;
-        *share = sum / total;
+        let (total, inv) = row_total(sum, c);
+        *share = sum * inv;
         log_den.add(total);
-        *d = (1.0 / total) as f32;
+        *d = inv as f32;
     }
     log_den
 }
@@ -792,6 +806,11 @@ struct LogSum {
 impl LogSum {
     #[inline(always)]
     fn add(&mut self, d: f64) {
+        if !(1e-100..=1e100).contains(&d) {
+            // Too small or large to multiply in (a row nothing reached).
+            self.sum += d.ln();
+            return;
+        }
         let (p, count) = match self.product {
             Some((p, count)) => (p * d, count + 1),
             None => (d, 1),
@@ -1184,7 +1203,7 @@ unsafe fn dense_centroids_f32_avx2(b: &F32Buffers, x: &[P3], k: f32, c: f64) -> 
 /// points, closed into Σₙ pt1ₙ xₙ (`sums[0]`), Σₘₙ Pₘₙ yₘ (`sums[1]`) and Np.
 fn close_centroid_rows(totals: &[[f64; 4]], x: &[P3], c: f64, sums: &mut [[f64; 3]; 2], np: &mut f64) {
     for (t, xn) in totals.iter().zip(x) {
-        let inv = 1.0 / (t[0] + c);
+        let (_, inv) = row_total(t[0], c);
         let pt1 = t[0] * inv;
         *np += pt1;
         for d in 0..3 {
@@ -1297,6 +1316,41 @@ mod tests {
             }
         }
         assert!(close(a.np, b.np));
+    }
+
+    /// With no outlier term (w = 0), a data point no moving point reaches
+    /// (its affinities underflow) is left out instead of turning every sum
+    /// into NaN: the rest match the textbook E-step without it.
+    #[test]
+    fn a_data_point_nothing_reaches_is_left_out_without_an_outlier_term() {
+        let y = cloud(200, 6);
+        let mut x = cloud(300, 5);
+        x[17] = [1e3, -1e3, 1e3];
+        let without: Vec<P3> = x.iter().enumerate().filter(|&(j, _)| j != 17).map(|(_, p)| *p).collect();
+        for single_precision in [false, true] {
+            for sigma2 in [0.05, 1e-4] {
+                let mut e = EStep::new(&x);
+                e.single_precision = single_precision;
+                let mut out = Posteriors::default();
+                e.run(&y, sigma2, 0.0, &mut out);
+                assert!(out.np.is_finite() && out.neg_log_likelihood.is_finite(), "{single_precision} {sigma2}");
+                assert_eq!(out.pt1[17], 0.0);
+                let mut alone = EStep::new(&without);
+                alone.single_precision = single_precision;
+                let mut want = Posteriors::default();
+                alone.run(&y, sigma2, 0.0, &mut want);
+                let tol = if single_precision { 1e-4 } else { 1e-9 };
+                assert!(
+                    (out.np - want.np).abs() < tol * want.np,
+                    "{single_precision} {sigma2}: {} vs {}",
+                    out.np,
+                    want.np
+                );
+                for (u, v) in out.p1.iter().zip(&want.p1) {
+                    assert!((u - v).abs() < tol * v.abs().max(1.0), "{single_precision} {sigma2}: p1 {u} vs {v}");
+                }
+            }
+        }
     }
 
     #[test]
