@@ -8,6 +8,7 @@ pub mod fastexp;
 pub mod freespace;
 pub mod grid;
 pub mod kernel;
+pub mod mstep;
 pub mod register;
 pub mod sampling;
 pub mod space;
