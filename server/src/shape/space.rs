@@ -17,8 +17,11 @@ use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::time::Instant;
 
-/// Artefact format version; bump on any change of the stored fields' meaning.
-pub const FORMAT_VERSION: u32 = 3;
+/// Artefact format version; bump on any change of the stored fields'
+/// meaning, or of the build's numerics, so that cached builds are redone
+/// (4: the kernel factor by pivoted Cholesky, the CPD's E-step in single
+/// precision and its M-step's Q in f32: values move in the sixth digit).
+pub const FORMAT_VERSION: u32 = 4;
 const MAGIC: &[u8; 8] = b"GRSPSPC\0";
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -210,7 +213,7 @@ impl ShapeSpace {
         let surface_normals: Vec<P3> = surface_samples.iter().map(|s| [s.normal.x, s.normal.y, s.normal.z]).collect();
         let norm = Normalization::of(&c);
         let y0: Vec<P3> = c.iter().map(|p| norm.forward(p)).collect();
-        let kernel = LowRankKernel::new(&y0, opts.cpd.beta, opts.cpd.max_rank, opts.cpd.rank_tol, opts.seed);
+        let kernel = LowRankKernel::new(&y0, opts.cpd.beta, opts.cpd.max_rank, opts.cpd.rank_tol);
         let c_pts = cpd::to_points(&c);
         let m = c.len();
         // Each instance independently (in parallel: the fits share only the kernel factor).
