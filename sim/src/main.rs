@@ -272,6 +272,13 @@ struct LiftArgs {
 }
 
 fn main() -> ExitCode {
+    // `... | head` must end quietly, not panic in println!: restore the
+    // default SIGPIPE disposition that Rust's runtime replaces.
+    // SAFETY: called first thing in main, before any thread exists.
+    #[cfg(unix)]
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
         .with_writer(std::io::stderr)

@@ -163,6 +163,13 @@ fn print(json: bool, v: &serde_json::Value, human: impl FnOnce()) {
 }
 
 fn main() -> ExitCode {
+    // `... | head` must end quietly, not panic in println!: restore the
+    // default SIGPIPE disposition that Rust's runtime replaces.
+    // SAFETY: called first thing in main, before any thread exists.
+    #[cfg(unix)]
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     let cli = Cli::parse();
     match run(&cli) {
         Ok(()) => ExitCode::SUCCESS,
