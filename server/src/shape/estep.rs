@@ -167,7 +167,7 @@ impl EStep {
             return;
         }
         let c = outlier_constant(sigma2, w, m, n);
-        if self.truncates(sigma2) {
+        if self.truncates(sigma2) && self.list_fits(y, self.cutoff_sigmas * sigma2.sqrt()) {
             let cutoff = self.cutoff_sigmas * sigma2.sqrt();
             self.run_truncated(y, weights, sigma2, c, cutoff * cutoff, out);
         } else {
@@ -298,6 +298,30 @@ impl EStep {
         dense_rows(x, ys, pi, row, acc, m, k, c, out);
     }
 
+    /// Whether the neighbour list at this cutoff stays within its memory
+    /// budget ([`max_listed_pairs`]). A list already built fits; before a
+    /// new one, 64 evenly spaced moving points count their neighbours in the
+    /// grid and the mean stands for all. Over the budget the E-step stays
+    /// dense (streamed, O(M + N) memory) until σ shrinks: two 20,000-point
+    /// clouds listed 10⁸ pairs (1.8 GB) at the first truncated step.
+    fn list_fits(&mut self, y: &[P3], cutoff: f64) -> bool {
+        if !matches!(self.list.state(y, cutoff), ListState::Stale) {
+            return true;
+        }
+        let radius = cutoff * (1.0 + VERLET_SKIN);
+        if radius > self.grid_radius || radius < 0.5 * self.grid_radius {
+            self.grid.build(&self.x, radius);
+            self.grid_radius = radius;
+        }
+        let samples = y.len().min(64);
+        let mut found = Vec::new();
+        for s in 0..samples {
+            self.grid.collect_within(&y[s * y.len() / samples], radius * radius, &mut found);
+        }
+        let estimate = found.len() as f64 / samples.max(1) as f64 * y.len() as f64;
+        estimate <= max_listed_pairs(y.len(), self.x.len()) as f64
+    }
+
     fn run_truncated(
         &mut self,
         y: &[P3],
@@ -392,6 +416,12 @@ impl EStep {
 /// Extra radius of a neighbour list beyond the cutoff, as a fraction of it:
 /// the room the moving points have before the list must be rebuilt.
 const VERLET_SKIN: f64 = 0.3;
+
+/// The neighbour list's budget: 256 pairs a point of both clouds, at most
+/// 2²⁴ (about 20 bytes a pair with its single-precision layout: 340 MB).
+fn max_listed_pairs(m: usize, n: usize) -> usize {
+    (256 * (m + n)).min(1 << 24)
+}
 
 /// What a neighbour list needs before an E-step at some cutoff.
 enum ListState {
@@ -1351,6 +1381,30 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A neighbour list that would exceed its budget is not built: the
+    /// E-step stays dense (the same bits as one that never truncates), and
+    /// a later, smaller σ lists its pairs as before.
+    #[test]
+    fn a_neighbour_list_over_budget_is_not_built() {
+        let (x, y) = (cloud(6000, 7), cloud(6000, 8));
+        let sigma2 = 0.05f64 * 0.05;
+        let mut e = EStep::new(&x);
+        assert!(e.truncates(sigma2), "the test needs the truncated regime");
+        let mut out = Posteriors::default();
+        e.run(&y, sigma2, 0.1, &mut out);
+        assert!(e.list.data.is_empty(), "{} pairs listed", e.list.data.len());
+        let mut dense = EStep::new(&x);
+        dense.truncate_below = 0.0;
+        let mut want = Posteriors::default();
+        dense.run(&y, sigma2, 0.1, &mut want);
+        assert!(out.p1.iter().zip(&want.p1).all(|(a, b)| a.to_bits() == b.to_bits()));
+        assert_eq!(out.neg_log_likelihood.to_bits(), want.neg_log_likelihood.to_bits());
+        // At σ = 0.01 the pairs fit (about 0.7 % of the cube around each point).
+        e.run(&y, 1e-4, 0.1, &mut out);
+        assert!(!e.list.data.is_empty() && e.list.data.len() <= max_listed_pairs(6000, 6000));
+        assert_close(&out, &reference(&x, &y, 1e-4, 0.1), 1e-6);
     }
 
     #[test]
