@@ -47,7 +47,11 @@ pub fn run(a: CpdArgs) -> CliResult {
     let dst = graspd::io::read_cloud(&a.target)?;
     let em = EmOptions { w: a.w, max_iters: a.iters, tol: a.tol };
     let out = if a.rigid {
-        let r = cpd::rigid(&src, &dst, &RigidOptions { em, scale: true })?;
+        let bar = super::progress_bar(a.iters as u64, "iterations");
+        let r =
+            cpd::rigid_reporting(&src, &dst, &RigidOptions { em, scale: true }, &mut |i| bar.set_position(i as u64));
+        bar.finish_and_clear();
+        let r = r?;
         graspd::io::write_cloud(&a.out, &r.moved)?;
         serde_json::json!({
             "mode": "rigid", "iterations": r.report.iterations, "converged": r.report.converged,
@@ -64,7 +68,17 @@ pub fn run(a: CpdArgs) -> CliResult {
             rank_tol: a.rank_tol,
             ..Default::default()
         };
-        let r = cpd::non_rigid(&src, &dst, &opts)?;
+        // The kernel factor comes first (seconds at tens of thousands of points).
+        let bar = super::progress_bar(a.iters as u64, "kernel");
+        bar.tick();
+        let r = cpd::non_rigid_reporting(&src, &dst, &opts, &mut |i| {
+            if i == 1 {
+                bar.set_message("iterations");
+            }
+            bar.set_position(i as u64)
+        });
+        bar.finish_and_clear();
+        let r = r?;
         graspd::io::write_cloud(&a.out, &r.moved)?;
         serde_json::json!({
             "mode": "nonrigid", "iterations": r.report.iterations, "converged": r.report.converged,

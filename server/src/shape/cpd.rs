@@ -147,6 +147,17 @@ pub struct RigidResult {
 }
 
 pub fn rigid(source: &[Point3<f64>], target: &[Point3<f64>], opts: &RigidOptions) -> Result<RigidResult, CpdError> {
+    rigid_reporting(source, target, opts, &mut |_| {})
+}
+
+/// As [`rigid`], calling `on_iteration` with the count of EM iterations
+/// done after each (a progress bar's feed).
+pub fn rigid_reporting(
+    source: &[Point3<f64>],
+    target: &[Point3<f64>],
+    opts: &RigidOptions,
+    on_iteration: &mut dyn FnMut(usize),
+) -> Result<RigidResult, CpdError> {
     let t0 = Instant::now();
     opts.em.validate()?;
     let (ys, xs) = (to_p3(source), to_p3(target));
@@ -174,6 +185,7 @@ pub fn rigid(source: &[Point3<f64>], target: &[Point3<f64>], opts: &RigidOptions
             let p = s * (r * Vector3::from(*y0i)) + t;
             *yi = [p.x, p.y, p.z];
         }
+        on_iteration(iterations);
         let nll = post.neg_log_likelihood;
         if opts.em.tol > 0.0 && ((prev - nll).abs() <= opts.em.tol * nll.abs().max(1e-12) || sigma2 <= 1e-10) {
             converged = true;
@@ -361,13 +373,24 @@ pub fn non_rigid(
     target: &[Point3<f64>],
     opts: &NonRigidOptions,
 ) -> Result<NonRigidResult, CpdError> {
+    non_rigid_reporting(source, target, opts, &mut |_| {})
+}
+
+/// As [`non_rigid`], calling `on_iteration` with the count of EM iterations
+/// done after each (the kernel factor comes before the first).
+pub fn non_rigid_reporting(
+    source: &[Point3<f64>],
+    target: &[Point3<f64>],
+    opts: &NonRigidOptions,
+    on_iteration: &mut dyn FnMut(usize),
+) -> Result<NonRigidResult, CpdError> {
     let ys = to_p3(source);
     check_cloud("source", &ys)?;
     opts.validate()?;
     let norm = Normalization::of(&ys);
     let y0: Vec<P3> = ys.iter().map(|p| norm.forward(p)).collect();
     let kernel = LowRankKernel::new(&y0, opts.beta, opts.max_rank, opts.rank_tol);
-    non_rigid_with_kernel(&y0, norm, &kernel, target, opts)
+    fit_non_rigid(&y0, norm, &kernel, target, &[], 0.0, opts, on_iteration)
 }
 
 /// A known correspondence: source point `source` belongs at `target`
@@ -404,6 +427,20 @@ pub fn non_rigid_with_landmarks(
     landmarks: &[Landmark],
     weight: f64,
     opts: &NonRigidOptions,
+) -> Result<NonRigidResult, CpdError> {
+    fit_non_rigid(y0, norm, kernel, target, landmarks, weight, opts, &mut |_| {})
+}
+
+#[allow(clippy::too_many_arguments)]
+fn fit_non_rigid(
+    y0: &[P3],
+    norm: Normalization,
+    kernel: &LowRankKernel,
+    target: &[Point3<f64>],
+    landmarks: &[Landmark],
+    weight: f64,
+    opts: &NonRigidOptions,
+    on_iteration: &mut dyn FnMut(usize),
 ) -> Result<NonRigidResult, CpdError> {
     let t0 = Instant::now();
     opts.validate()?;
@@ -509,6 +546,7 @@ pub fn non_rigid_with_landmarks(
             num += post.p1[i] * dot(&y[i], &y[i]) - 2.0 * dot(&post.px[i], &y[i]);
         }
         sigma2 = (num / (3.0 * post.np)).abs().max(1e-10);
+        on_iteration(iterations);
         let nll = post.neg_log_likelihood;
         if opts.em.tol > 0.0 && ((prev - nll).abs() <= opts.em.tol * nll.abs().max(1e-12) || sigma2 <= 1e-10) {
             converged = true;
