@@ -83,6 +83,7 @@ pub fn run(a: CpdArgs) -> CliResult {
         serde_json::json!({
             "mode": "nonrigid", "iterations": r.report.iterations, "converged": r.report.converged,
             "sigma2": r.report.sigma2, "elapsed_ms": r.report.elapsed_ms, "kernel_rank": r.kernel_rank,
+            "kernel_tail_ratio": r.kernel_tail_ratio,
             "source_points": src.len(), "target_points": dst.len(),
         })
     };

@@ -364,6 +364,8 @@ pub struct NonRigidResult {
     pub moved: Vec<Point3<f64>>,
     pub field: DeformationField,
     pub kernel_rank: usize,
+    /// The largest eigenvalue the kernel factor left out, relative to the largest kept.
+    pub kernel_tail_ratio: f64,
     pub report: EmReport,
 }
 
@@ -566,6 +568,7 @@ fn fit_non_rigid(
         moved,
         field: DeformationField { norm, centres: y0.to_vec(), weights: w, beta: opts.beta },
         kernel_rank: k,
+        kernel_tail_ratio: kernel.tail_ratio,
         report: EmReport {
             iterations,
             converged,

@@ -28,7 +28,8 @@ pub struct LowRankKernel {
     pub lambda: Vec<f64>,
     /// Largest discarded eigenvalue relative to the largest kept one (0 for
     /// full rank); for a factor from the pivoted Cholesky, at least the bound
-    /// on what the Cholesky left out, relative to the largest.
+    /// on what the Cholesky left out (its trace), relative to the largest and
+    /// capped at 1.
     pub tail_ratio: f64,
 }
 
@@ -38,6 +39,9 @@ pub struct LowRankKernel {
 /// factor in about half the time and moves the CPD's points by 1.3 µm; at
 /// 4,096 it takes 0.5 s where the randomized range finder it replaced took 6.
 const EXACT_MAX_POINTS: usize = 512;
+/// A factor that leaves out eigenvalues above this fraction of the largest
+/// (a rank cap or a β too small for the cloud) is logged as a warning.
+const TAIL_WARNING: f64 = 1e-3;
 /// Rows a parallel task of the Cholesky updates takes.
 const BLOCK_ROWS: usize = 256;
 /// Multiply-adds of a Cholesky step below which it runs on one thread.
@@ -72,7 +76,7 @@ impl LowRankKernel {
         let k = s.iter().take(max_rank).take_while(|&&x| x > rel_tol * lmax).count().max(1).min(r);
         let vk = Mat::from_fn(r, k, |i, j| v[(i, j)] / s[j].max(f64::MIN_POSITIVE).sqrt());
         let u = lmat * &vk;
-        Self::truncated(u.as_ref(), &s, k, rel_tol, left_out / lmax)
+        Self::truncated(u.as_ref(), &s, k, rel_tol, (left_out / lmax).min(1.0))
     }
 
     /// The first eigenpairs of (u, s) (s descending) above `rel_tol` of the
@@ -81,6 +85,15 @@ impl LowRankKernel {
         let lmax = s.first().copied().unwrap_or(0.0).max(f64::MIN_POSITIVE);
         let k = s.iter().take(max_rank).take_while(|&&l| l > rel_tol * lmax).count().max(1).min(u.ncols());
         let tail_ratio = s.get(k).map_or(0.0, |&l| (l / lmax).max(0.0)).max(floor);
+        if tail_ratio > TAIL_WARNING {
+            tracing::warn!(
+                rank = k,
+                max_rank,
+                tail_ratio,
+                "the kernel factor leaves out eigenvalues up to {tail_ratio:.1e} of the largest: the deformation \
+                 field is coarser than asked (raise the maximum rank or β)"
+            );
+        }
         Self { q: u.subcols(0, k).to_owned(), lambda: s[..k].to_vec(), tail_ratio }
     }
 
@@ -257,6 +270,22 @@ mod tests {
         let w = Mat::from_fn(pts.len(), 3, |_, _| r.random::<f64>() - 0.5);
         let (a, b) = (chol.apply(w.as_ref()), exact.apply(w.as_ref()));
         assert!((&a - &b).norm_max() < 1e-6 * b.norm_max(), "{} of {}", (&a - &b).norm_max(), b.norm_max());
+    }
+
+    /// A factor capped far below the kernel's rank says so: β small against
+    /// the points' spacing makes G nearly the identity, whose eigenvalues are
+    /// all alike; on both routes the tail is then near the largest.
+    #[test]
+    fn a_capped_factor_reports_its_tail() {
+        let mut r = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        for n in [300, 900] {
+            let pts: Vec<P3> = (0..n).map(|_| [r.random(), r.random(), r.random()]).collect();
+            let capped = LowRankKernel::new(&pts, 0.01, 50, 1e-8);
+            assert_eq!(capped.rank(), 50);
+            assert!(capped.tail_ratio > 0.5 && capped.tail_ratio <= 1.0, "{n}: {}", capped.tail_ratio);
+            let smooth = LowRankKernel::new(&pts, 0.5, 300, 1e-6);
+            assert!(smooth.tail_ratio < 1e-5, "{n}: {}", smooth.tail_ratio);
+        }
     }
 
     #[test]
