@@ -242,19 +242,12 @@ mod kernels {
         }
     }
 
-    /// The row loops, generic over the dot product so that each level
-    /// brings its own (LLVM vectorises `axpy3` well by itself, but not the
-    /// eight-lane sums of `dot3`).
-    #[inline(always)]
-    pub fn rows_dot3_with(
-        dot: impl Fn(&[f32], &[f64], usize) -> [f64; 3],
-        rows: &[f32],
-        v: &[f64],
-        n: usize,
-        out: &mut [[f64; 3]],
-    ) {
+    /// The row loops. The SIMD levels bring their own `rows_dot3` and
+    /// `rows_normal` (LLVM does not vectorise the eight-lane sums of `dot3`
+    /// well) and share `rows_axpy3`, which it does.
+    pub fn rows_dot3(rows: &[f32], v: &[f64], n: usize, out: &mut [[f64; 3]]) {
         for (row, o) in rows.chunks_exact(n).zip(out) {
-            *o = dot(row, v, n);
+            *o = dot3(row, v, n);
         }
     }
 
@@ -265,27 +258,11 @@ mod kernels {
         }
     }
 
-    #[inline(always)]
-    pub fn rows_normal_with(
-        dot: impl Fn(&[f32], &[f64], usize) -> [f64; 3],
-        rows: &[f32],
-        p1: &[f64],
-        v: &[f64],
-        n: usize,
-        acc: &mut [f64],
-    ) {
+    pub fn rows_normal(rows: &[f32], p1: &[f64], v: &[f64], n: usize, acc: &mut [f64]) {
         for (row, p) in rows.chunks_exact(n).zip(p1) {
-            let d = dot(row, v, n);
+            let d = dot3(row, v, n);
             axpy3(row, [d[0] * p, d[1] * p, d[2] * p], acc, n);
         }
-    }
-
-    pub fn rows_dot3(rows: &[f32], v: &[f64], n: usize, out: &mut [[f64; 3]]) {
-        rows_dot3_with(dot3, rows, v, n, out)
-    }
-
-    pub fn rows_normal(rows: &[f32], p1: &[f64], v: &[f64], n: usize, acc: &mut [f64]) {
-        rows_normal_with(dot3, rows, p1, v, n, acc)
     }
 
     /// `dot3` in eight-lane registers (`$w` lanes each, so 8 / $w registers
