@@ -62,7 +62,8 @@ impl LowRankKernel {
         let max_rank = max_rank.clamp(1, m.max(1));
         if m <= EXACT_MAX_POINTS {
             let (u, s) = exact_eigen(&gaussian(points, points, beta));
-            return Self::truncated(u.as_ref(), &s, max_rank, rel_tol, 0.0);
+            let k = kept_rank(&s, max_rank, rel_tol).min(u.ncols());
+            return Self::truncated(u.as_ref(), &s, k, 0.0);
         }
         // Columns enough for the largest `max_rank` eigenpairs should the
         // tolerance alone want more.
@@ -73,22 +74,21 @@ impl LowRankKernel {
         let lmat = MatRef::from_column_major_slice(&l, m, r);
         let (v, s) = exact_eigen(&(lmat.transpose() * lmat));
         let lmax = s.first().copied().unwrap_or(0.0).max(f64::MIN_POSITIVE);
-        let k = s.iter().take(max_rank).take_while(|&&x| x > rel_tol * lmax).count().max(1).min(r);
+        let k = kept_rank(&s, max_rank, rel_tol).min(r);
+        // Only the k eigenvectors kept are carried back to M rows.
         let vk = Mat::from_fn(r, k, |i, j| v[(i, j)] / s[j].max(f64::MIN_POSITIVE).sqrt());
         let u = lmat * &vk;
-        Self::truncated(u.as_ref(), &s, k, rel_tol, (left_out / lmax).min(1.0))
+        Self::truncated(u.as_ref(), &s, k, (left_out / lmax).min(1.0))
     }
 
-    /// The first eigenpairs of (u, s) (s descending) above `rel_tol` of the
-    /// largest, at most `max_rank`; `floor`: a known bound on the tail.
-    fn truncated(u: MatRef<'_, f64>, s: &[f64], max_rank: usize, rel_tol: f64, floor: f64) -> Self {
+    /// The first k eigenpairs of (u, s) (s descending); `floor`: a known
+    /// bound on the tail.
+    fn truncated(u: MatRef<'_, f64>, s: &[f64], k: usize, floor: f64) -> Self {
         let lmax = s.first().copied().unwrap_or(0.0).max(f64::MIN_POSITIVE);
-        let k = s.iter().take(max_rank).take_while(|&&l| l > rel_tol * lmax).count().max(1).min(u.ncols());
         let tail_ratio = s.get(k).map_or(0.0, |&l| (l / lmax).max(0.0)).max(floor);
         if tail_ratio > TAIL_WARNING {
             tracing::warn!(
                 rank = k,
-                max_rank,
                 tail_ratio,
                 "the kernel factor leaves out eigenvalues up to {tail_ratio:.1e} of the largest: the deformation \
                  field is coarser than asked (raise the maximum rank or β)"
@@ -107,6 +107,13 @@ impl LowRankKernel {
         }
         &self.q * &t
     }
+}
+
+/// How many of the eigenvalues `s` (descending) lie above `rel_tol` of the
+/// largest, at most `max_rank`, at least 1.
+fn kept_rank(s: &[f64], max_rank: usize, rel_tol: f64) -> usize {
+    let lmax = s.first().copied().unwrap_or(0.0).max(f64::MIN_POSITIVE);
+    s.iter().take(max_rank).take_while(|&&l| l > rel_tol * lmax).count().max(1)
 }
 
 /// G ≈ L Lᵀ by partial pivoted Cholesky (Harbrecht, Peters & Schneider
@@ -260,7 +267,7 @@ mod tests {
         assert!(pts.len() > EXACT_MAX_POINTS);
         let chol = LowRankKernel::new(&pts, 0.3, 1000, 1e-8);
         let (u, s) = exact_eigen(&gaussian(&pts, &pts, 0.3));
-        let exact = LowRankKernel::truncated(u.as_ref(), &s, 1000, 1e-8, 0.0);
+        let exact = LowRankKernel::truncated(u.as_ref(), &s, kept_rank(&s, 1000, 1e-8), 0.0);
         assert!(chol.rank().abs_diff(exact.rank()) <= 2, "rank {} vs {}", chol.rank(), exact.rank());
         for (a, b) in chol.lambda.iter().zip(&exact.lambda).take(chol.rank().min(exact.rank()) / 2) {
             assert!((a - b).abs() <= 1e-7 * exact.lambda[0], "eigenvalue {a} vs {b}");
