@@ -10,4 +10,5 @@ pub mod hand;
 pub mod io;
 pub mod service;
 pub mod shape;
+pub mod simd;
 pub mod tools;

@@ -14,6 +14,7 @@
 use super::estep::{dot, initial_sigma2, EStep, Posteriors, P3};
 use super::kernel::{gaussian, LowRankKernel};
 use super::mstep::{self, LowRankFactor};
+use crate::simd::clear_upper_state;
 use faer::prelude::*;
 use faer::Side;
 use nalgebra::{Matrix3, Point3, Vector3};
@@ -317,6 +318,7 @@ impl DeformationField {
         let zn: Vec<P3> = pts.iter().map(|p| self.norm.forward(p)).collect();
         let g = gaussian(&zn, &self.centres, self.beta);
         let v = &g * &self.weights;
+        clear_upper_state();
         zn.iter()
             .enumerate()
             .map(|(i, z)| self.norm.inverse(&[z[0] + v[(i, 0)], z[1] + v[(i, 1)], z[2] + v[(i, 2)]]))
@@ -534,6 +536,7 @@ fn fit_non_rigid(
                     Ok(llt) => llt.solve(&b),
                     Err(_) => a.partial_piv_lu().solve(&b),
                 };
+                clear_upper_state();
                 (0..k).map(|j| [zz[(j, 0)], zz[(j, 1)], zz[(j, 2)]]).collect()
             }
         };

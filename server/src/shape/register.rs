@@ -21,6 +21,7 @@ use super::estep::{dist2, dot, initial_sigma2, EStep, Posteriors, P3};
 use super::freespace::FreeSpace;
 use super::sampling::{drop_stray_points, even_subsample, subsample};
 use super::space::{AnchoredModel, LinearModel, NamedPoint, ShapeSpace};
+use crate::simd::clear_upper_state;
 use faer::prelude::*;
 use faer::Side;
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
@@ -968,8 +969,10 @@ impl LatentStep {
             }
             a[(j, j)] += reg / var[j];
         }
-        let llt = a.llt(Side::Lower).ok()?;
-        let sol = llt.solve(&b);
+        let llt = a.llt(Side::Lower);
+        let sol = llt.ok().map(|l| l.solve(&b));
+        clear_upper_state();
+        let sol = sol?;
         Some((0..q).map(|j| sol[(j, 0)]).collect())
     }
 }

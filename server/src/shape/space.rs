@@ -11,6 +11,7 @@ use super::cpd::{self, to_p3, EmOptions, NonRigidOptions, Normalization, RigidOp
 use super::estep::P3;
 use super::kernel::{gaussian, LowRankKernel};
 use crate::geometry::{sample_points_even, TriMesh};
+use crate::simd::clear_upper_state;
 use faer::prelude::*;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -349,6 +350,7 @@ impl ShapeSpace {
         let m = self.centres.len();
         let mean = Mat::from_fn(m, 3, |i, d| self.mean[i * 3 + d]);
         let gm = &g * &mean;
+        clear_upper_state();
         let base: Vec<P3> =
             zn.iter().enumerate().map(|(i, p)| [p[0] + gm[(i, 0)], p[1] + gm[(i, 1)], p[2] + gm[(i, 2)]]).collect();
         let basis = self
@@ -357,6 +359,7 @@ impl ShapeSpace {
             .map(|md| {
                 let mm = Mat::from_fn(m, 3, |i, d| md[i * 3 + d]);
                 let b = &g * &mm;
+                clear_upper_state();
                 (0..zn.len()).map(|i| [b[(i, 0)], b[(i, 1)], b[(i, 2)]]).collect()
             })
             .collect();
@@ -685,7 +688,9 @@ fn pca(w_rows: &[Vec<f64>], v_rows: &[Vec<f64>], explained: f64, max_modes: usiz
     };
     let (mean_w, mean_v) = (mean(w_rows), mean(v_rows));
     let vc = Mat::from_fn(d, n, |k, i| v_rows[i][k] - mean_v[k]);
-    let svd = vc.thin_svd().map_err(|e| SpaceError::Pca(format!("{e:?}")))?;
+    let svd = vc.thin_svd().map_err(|e| SpaceError::Pca(format!("{e:?}")));
+    clear_upper_state();
+    let svd = svd?;
     let s: Vec<f64> = (0..svd.S().dim()).map(|i| svd.S().column_vector()[i]).collect();
     let total: f64 = s.iter().map(|x| x * x).sum::<f64>().max(1e-300);
     let (mut modes_w, mut variances, mut cumulative) = (Vec::new(), Vec::new(), Vec::new());
