@@ -316,12 +316,16 @@ mod kernels {
                 unsafe fn updates<const G: usize>(a: *const f32, t: [[f64; 3]; G], n: usize, acc: *mut f64) {
                     let ts = t.map(|tg| tg.map(|x| $set1(x)));
                     for i in (0..n).step_by($w) {
+                        // Each row's values converted once for the three columns (the
+                        // stores to acc between would otherwise make LLVM load them again).
+                        // SAFETY: the callers hold i + $w <= n within G rows of a and 3 columns of acc.
+                        let x: [_; G] = std::array::from_fn(|g| unsafe { $cvt($loadps(a.add(g * n + i))) });
                         for c in 0..3 {
-                            // SAFETY: the callers hold i + $w <= n within G rows of a and 3 columns of acc.
+                            // SAFETY: as above.
                             unsafe {
                                 let mut s = $load(acc.add(c * n + i));
                                 for g in 0..G {
-                                    s = $add(s, $mul($cvt($loadps(a.add(g * n + i))), ts[g][c]));
+                                    s = $add(s, $mul(x[g], ts[g][c]));
                                 }
                                 $store(acc.add(c * n + i), s);
                             }
@@ -372,9 +376,9 @@ mod kernels {
         };
     }
     #[rustfmt::skip]
-    compiled_for!(avx2, "avx2", 4, 2, _mm256_setzero_pd, _mm256_set1_pd, _mm256_loadu_pd, _mm_loadu_ps, _mm256_cvtps_pd, _mm256_mul_pd, _mm256_add_pd, _mm256_storeu_pd);
+    compiled_for!(avx2, "avx2", 4, 4, _mm256_setzero_pd, _mm256_set1_pd, _mm256_loadu_pd, _mm_loadu_ps, _mm256_cvtps_pd, _mm256_mul_pd, _mm256_add_pd, _mm256_storeu_pd);
     #[rustfmt::skip]
-    compiled_for!(avx512, "avx512f", 8, 4, _mm512_setzero_pd, _mm512_set1_pd, _mm512_loadu_pd, _mm256_loadu_ps, _mm512_cvtps_pd, _mm512_mul_pd, _mm512_add_pd, _mm512_storeu_pd);
+    compiled_for!(avx512, "avx512f", 8, 8, _mm512_setzero_pd, _mm512_set1_pd, _mm512_loadu_pd, _mm256_loadu_ps, _mm512_cvtps_pd, _mm512_mul_pd, _mm512_add_pd, _mm512_storeu_pd);
 }
 
 /// Solves (Qᵀ diag(p1) Q + s Λ⁻¹) z = b for the three columns of `b` by
