@@ -298,28 +298,40 @@ mod kernels {
                             }
                         }
                     }
-                    acc.map(|row| {
-                        row.map(|ac| {
+                    let mut out = [[0.0f64; 3]; G];
+                    for g in 0..G {
+                        for c in 0..3 {
                             let mut l = [0.0f64; LANES];
                             for r in 0..R {
                                 // SAFETY: $w values at r·$w of an array of 8.
-                                unsafe { $store(l.as_mut_ptr().add(r * $w), ac[r]) };
+                                unsafe { $store(l.as_mut_ptr().add(r * $w), acc[g][c][r]) };
                             }
                             let h = [l[0] + l[4], l[1] + l[5], l[2] + l[6], l[3] + l[7]];
-                            (h[0] + h[2]) + (h[1] + h[3])
-                        })
-                    })
+                            out[g][c] = (h[0] + h[2]) + (h[1] + h[3]);
+                        }
+                    }
+                    out
                 }
 
                 /// acc += Σ_g row_g ⊗ t_g, rows in order.
                 #[target_feature(enable = $feature)]
                 unsafe fn updates<const G: usize>(a: *const f32, t: [[f64; 3]; G], n: usize, acc: *mut f64) {
-                    let ts = t.map(|tg| tg.map(|x| $set1(x)));
+                    // Loops rather than array `map`/`from_fn`, which LLVM left as
+                    // calls (with a memmove) on arrays of G·3 registers.
+                    let mut ts = [[$zero(); 3]; G];
+                    for g in 0..G {
+                        for c in 0..3 {
+                            ts[g][c] = $set1(t[g][c]);
+                        }
+                    }
                     for i in (0..n).step_by($w) {
                         // Each row's values converted once for the three columns (the
                         // stores to acc between would otherwise make LLVM load them again).
-                        // SAFETY: the callers hold i + $w <= n within G rows of a and 3 columns of acc.
-                        let x: [_; G] = std::array::from_fn(|g| unsafe { $cvt($loadps(a.add(g * n + i))) });
+                        let mut x = [$zero(); G];
+                        for g in 0..G {
+                            // SAFETY: the callers hold i + $w <= n within G rows of a and 3 columns of acc.
+                            x[g] = unsafe { $cvt($loadps(a.add(g * n + i))) };
+                        }
                         for c in 0..3 {
                             // SAFETY: as above.
                             unsafe {
@@ -357,7 +369,12 @@ mod kernels {
                         unsafe {
                             let a = rows.as_ptr().add(i * n);
                             let d = dots::<$g>(a, v.as_ptr(), n);
-                            let t: [[f64; 3]; $g] = std::array::from_fn(|g| d[g].map(|x| x * p1[i + g]));
+                            let mut t = [[0.0f64; 3]; $g];
+                            for g in 0..$g {
+                                for c in 0..3 {
+                                    t[g][c] = d[g][c] * p1[i + g];
+                                }
+                            }
                             updates::<$g>(a, t, n, acc.as_mut_ptr());
                         }
                         i += $g;
