@@ -45,8 +45,12 @@ const EXACT_MAX_POINTS: usize = 512;
 const TAIL_WARNING: f64 = 1e-3;
 /// Rows a parallel task of the Cholesky updates takes.
 const BLOCK_ROWS: usize = 256;
-/// Multiply-adds of a Cholesky step below which it runs on one thread.
-const PAR_MIN_WORK: usize = 1 << 20;
+/// Multiply-adds of a Cholesky step below which it runs on one thread. CPD
+/// builds the factor on a rayon worker (`cpd::on_pool`), where a fork and
+/// join costs microseconds: at 1,024 points two threads take from the 64th
+/// column on (`examples/bench_kernel`, 2 threads: 66 → 53 ms; it was 2²⁰,
+/// the 1,024th).
+const PAR_MIN_WORK: usize = 1 << 16;
 /// A pivot below this (G's diagonal is 1) is rounding error: the points left
 /// are, to working precision, combinations of the pivots taken.
 const MIN_PIVOT: f64 = 1e-13;
@@ -73,7 +77,15 @@ impl LowRankKernel {
         let r = l.len() / m.max(1);
         // Eigenvectors of L Lᵀ from Lᵀ L = V S Vᵀ: L Lᵀ = (L V S^-½) S (L V S^-½)ᵀ.
         let lmat = MatRef::from_column_major_slice(&l, m, r);
-        let gram = lmat.transpose() * lmat;
+        // Its lower half only: the eigendecomposition reads no other.
+        let mut gram = Mat::<f64>::zeros(r, r);
+        {
+            use faer::linalg::matmul::triangular::{matmul, BlockStructure};
+            let full = BlockStructure::Rectangular;
+            let lower = BlockStructure::TriangularLower;
+            let par = faer::get_global_parallelism();
+            matmul(gram.as_mut(), lower, faer::Accum::Replace, lmat.transpose(), full, lmat, full, 1.0, par);
+        }
         clear_upper_state();
         let (v, s) = exact_eigen(&gram);
         let lmax = s.first().copied().unwrap_or(0.0).max(f64::MIN_POSITIVE);
