@@ -399,6 +399,12 @@ pub fn non_rigid_reporting(
     })
 }
 
+/// Pairs from which a non-rigid CPD splits its dense E-step over the pool
+/// (`EStep::parallel_rows`). Below, one thread: shape-space builds (400
+/// centres, 1,600 points) already fit their instances in parallel, and keep
+/// the bits of their sums.
+const PARALLEL_ESTEP_MIN_PAIRS: usize = 1 << 20;
+
 /// Runs `f` on a worker of rayon's pool, or inline when already on one. The
 /// kernel factor and the M-step split their products over the pool; from a
 /// thread outside it, every split parks the caller and wakes a worker (two
@@ -481,6 +487,7 @@ fn fit_non_rigid(
     let m = y0.len();
     let k = kernel.rank();
     let mut estep = EStep::new(&x);
+    estep.parallel_rows = m * x.len() >= PARALLEL_ESTEP_MIN_PAIRS;
     let mut post = Posteriors::default();
     let mut y = y0.to_vec();
     let mut z = vec![[0.0; 3]; k];

@@ -12,6 +12,7 @@
 
 use super::fastexp::{exp2_neg_f32, exp_neg, madd, EXP2_CUT_F32, EXP2_SERIES_F32};
 use super::grid::RadiusGrid;
+use rayon::prelude::*;
 
 #[cfg(target_arch = "x86_64")]
 mod avx512;
@@ -102,6 +103,12 @@ pub struct EStep {
     /// need no more (registration); CPD keeps f64 to agree with its peers.
     pub single_precision: bool,
     f32buf: F32Buffers,
+    /// Split the dense single-precision E-step's data rows over rayon's pool
+    /// in fixed chunks (`dense_chunks`). For CPD, whose E-step is one of the
+    /// few things running; a registration keeps one thread (the daemon runs
+    /// one per request) and the bits of the sums in one pass.
+    pub parallel_rows: bool,
+    chunk_scratch: Vec<DenseScratch>,
     // Reused buffers.
     ys: [Vec<f64>; 3],
     row: Vec<f64>,
@@ -129,6 +136,8 @@ impl EStep {
             truncate_below: 0.5,
             single_precision: false,
             f32buf: F32Buffers::default(),
+            parallel_rows: false,
+            chunk_scratch: Vec::new(),
             ys: Default::default(),
             row: Vec::new(),
             acc: Default::default(),
@@ -254,19 +263,44 @@ impl EStep {
         c: f64,
         out: &mut Posteriors,
     ) {
-        let (m, k) = (y.len(), exponent_f32(sigma2));
+        let (m, k, simd) = (y.len(), exponent_f32(sigma2), self.simd);
         let b = &mut self.f32buf;
         b.load(&self.x, y, weights);
-        #[cfg(target_arch = "x86_64")]
-        {
-            // SAFETY: `Simd::detect` found the features the functions are compiled for.
-            match self.simd {
-                Simd::Avx512 => return unsafe { avx512::dense_rows::<STATS>(b, m, k, c, out) },
-                Simd::Avx2 => return unsafe { dense_rows_f32_avx2::<STATS>(b, m, k, c, out) },
-                Simd::Portable => {}
+        let F32Buffers { x, ys, pi, row, acc, .. } = b;
+        let (chunks, len) = if STATS && self.parallel_rows { dense_chunks(x.len()) } else { (1, x.len()) };
+        if chunks == 1 {
+            let pt1: &mut [f64] = if STATS { &mut out.pt1 } else { &mut [] };
+            let job = DenseRows { x, ys, pi, row, acc, pt1 };
+            out.neg_log_likelihood -= dense_f32_rows::<STATS>(simd, job, k, c);
+            if STATS {
+                store_posterior_sums(acc, m, out);
             }
+            return;
         }
-        dense_rows_f32::<false, STATS>(b, m, k, c, out);
+        // Split over the pool by fixed chunks of data rows, each with its own
+        // sums, added in chunk order.
+        self.chunk_scratch.resize_with(chunks, DenseScratch::default);
+        let (ys, pi) = (&*ys, &*pi);
+        let logs: Vec<f64> = self.chunk_scratch[..chunks]
+            .par_iter_mut()
+            .zip(x.par_chunks(len))
+            .zip(out.pt1.par_chunks_mut(len))
+            .map(|((s, xc), pt1)| {
+                let job = DenseRows { x: xc, ys, pi, row: &mut s.row, acc: &mut s.acc, pt1 };
+                dense_f32_rows::<true>(simd, job, k, c)
+            })
+            .collect();
+        for (s, log) in self.chunk_scratch[..chunks].iter().zip(&logs) {
+            let [p1, px0, px1, px2] = &s.acc;
+            for i in 0..m {
+                out.p1[i] += p1[i] as f64;
+                let px = &mut out.px[i];
+                px[0] += px0[i] as f64;
+                px[1] += px1[i] as f64;
+                px[2] += px2[i] as f64;
+            }
+            out.neg_log_likelihood -= log;
+        }
     }
 
     fn run_dense(&mut self, y: &[P3], weights: Option<&[f64]>, sigma2: f64, c: f64, out: &mut Posteriors) {
@@ -663,6 +697,41 @@ impl F32Buffers {
     }
 }
 
+/// One pass of a dense single-precision kernel over data rows `x` (all the
+/// data, or one chunk of it): the moving points it reads (padded, `load`),
+/// the scratch it writes (`row`; `acc` ends holding the chunk's P1 and PX
+/// sums), and with `STATS` the rows' shares into `pt1` (x.len() long).
+/// The kernels return Σ log of the rows' totals.
+pub(super) struct DenseRows<'a> {
+    pub x: &'a [[f32; 3]],
+    pub ys: &'a [Vec<f32>; 3],
+    pub pi: &'a [f32],
+    pub row: &'a mut Vec<f32>,
+    pub acc: &'a mut [Vec<f32>; 4],
+    pub pt1: &'a mut [f64],
+}
+
+/// A dense kernel's own scratch, one per chunk of a split E-step.
+#[derive(Default)]
+struct DenseScratch {
+    row: Vec<f32>,
+    acc: [Vec<f32>; 4],
+}
+
+/// Data rows below which a dense E-step is not split (`EStep::parallel_rows`),
+/// and the most chunks it is split into: fixed by the data's size alone, so
+/// the sums, added chunk after chunk, are the same on any thread count.
+const MIN_CHUNK_ROWS: usize = 128;
+const MAX_CHUNKS: usize = 8;
+
+/// How many chunks of how many rows (a multiple of `ROW_BLOCK`) a split
+/// dense E-step over `n` data rows takes.
+fn dense_chunks(n: usize) -> (usize, usize) {
+    let chunks = (n / MIN_CHUNK_ROWS).clamp(1, MAX_CHUNKS);
+    let len = n.div_ceil(chunks).next_multiple_of(ROW_BLOCK).max(ROW_BLOCK);
+    (n.div_ceil(len).max(1), len)
+}
+
 /// The truncated E-step over a neighbour list, in single precision.
 /// `starts`/`data` must index the moving points and the data loaded in `b`.
 #[inline(always)]
@@ -727,17 +796,12 @@ fn listed_pairs_f32<const FMA: bool>(
 /// polynomial and the accumulations each become one instruction per term;
 /// measured 17 % off a mug registration).
 #[inline(always)]
-fn dense_rows_f32<const FMA: bool, const STATS: bool>(
-    b: &mut F32Buffers,
-    m: usize,
-    k: f32,
-    c: f64,
-    out: &mut Posteriors,
-) {
-    let F32Buffers { x, ys, pi, row, acc, .. } = b;
+fn dense_rows_f32<const FMA: bool, const STATS: bool>(job: DenseRows<'_>, k: f32, c: f64) -> f64 {
+    let DenseRows { x, ys, pi, row, acc, pt1: pt1_out } = job;
     // The moving points come padded to whole vectors (`load`).
     let m8 = pi.len();
     let (yx, yy, yz, pi) = (&ys[0][..m8], &ys[1][..m8], &ys[2][..m8], &pi[..m8]);
+    row.resize(m8, 0.0);
     for a in acc.iter_mut() {
         a.clear();
         a.resize(m8, 0.0);
@@ -762,7 +826,7 @@ fn dense_rows_f32<const FMA: bool, const STATS: bool>(
         if !STATS {
             continue;
         }
-        out.pt1[j] = pt1;
+        pt1_out[j] = pt1;
         let inv32 = inv as f32;
         let (w0, w1, w2) = (xn[0] * inv32, xn[1] * inv32, xn[2] * inv32);
         for ((((r, a), bb), cc), d) in
@@ -774,10 +838,7 @@ fn dense_rows_f32<const FMA: bool, const STATS: bool>(
             *d = madd::<FMA>(*r, w2, *d);
         }
     }
-    if STATS {
-        store_posterior_sums(acc, m, out);
-    }
-    out.neg_log_likelihood -= log_den.total();
+    log_den.total()
 }
 
 /// A data point's row total with the outlier term `c`, and its inverse.
@@ -964,10 +1025,10 @@ unsafe fn lane_sum(v: std::arch::x86_64::__m256) -> f32 {
 /// vector. Same operations in the same order as `dense_rows_f32::<true, STATS>`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn dense_rows_f32_avx2<const STATS: bool>(b: &mut F32Buffers, m: usize, k: f32, c: f64, out: &mut Posteriors) {
-    let F32Buffers { x, ys, pi, row, acc, .. } = b;
+unsafe fn dense_rows_f32_avx2<const STATS: bool>(job: DenseRows<'_>, k: f32, c: f64) -> f64 {
+    let DenseRows { x, ys, pi, row, acc, pt1: pt1_out } = job;
     let m8 = pi.len();
-    assert!(m8.is_multiple_of(LANES) && ys.iter().all(|v| v.len() == m8) && m <= m8);
+    assert!(m8.is_multiple_of(LANES) && ys.iter().all(|v| v.len() == m8) && (!STATS || pt1_out.len() == x.len()));
     row.resize(ROW_BLOCK * m8, 0.0);
     for a in acc.iter_mut() {
         a.clear();
@@ -985,7 +1046,7 @@ unsafe fn dense_rows_f32_avx2<const STATS: bool>(b: &mut F32Buffers, m: usize, k
         // SAFETY: `rows` points into buffers of the lengths it records.
         let pt1 = rows.block::<ROW_BLOCK, STATS>(block.try_into().expect("a whole block"), &mut log_den);
         if STATS {
-            out.pt1[i * ROW_BLOCK..(i + 1) * ROW_BLOCK].copy_from_slice(&pt1);
+            pt1_out[i * ROW_BLOCK..(i + 1) * ROW_BLOCK].copy_from_slice(&pt1);
         }
     }
     let done = x.len() - blocks.remainder().len();
@@ -993,13 +1054,26 @@ unsafe fn dense_rows_f32_avx2<const STATS: bool>(b: &mut F32Buffers, m: usize, k
         // SAFETY: as above.
         let pt1 = rows.block::<1, STATS>(&[*xn], &mut log_den);
         if STATS {
-            out.pt1[done + i] = pt1[0];
+            pt1_out[done + i] = pt1[0];
         }
     }
-    if STATS {
-        store_posterior_sums(acc, m, out);
+    log_den.total()
+}
+
+/// A dense single-precision pass on the widest kernel `simd` allows.
+fn dense_f32_rows<const STATS: bool>(simd: Simd, job: DenseRows<'_>, k: f32, c: f64) -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        // SAFETY: `simd` comes from `Simd::detect` (or a test that checked
+        // the CPU): the CPU runs what these are compiled for.
+        match simd {
+            Simd::Avx512 => return unsafe { avx512::dense_rows::<STATS>(job, k, c) },
+            Simd::Avx2 => return unsafe { dense_rows_f32_avx2::<STATS>(job, k, c) },
+            Simd::Portable => {}
+        }
     }
-    out.neg_log_likelihood -= log_den.total();
+    let _ = simd;
+    dense_rows_f32::<false, STATS>(job, k, c)
 }
 
 /// The single-precision posterior sums (P1, PX as three columns) of the
@@ -1450,6 +1524,35 @@ mod tests {
                 let nll = e.neg_log_likelihood(&y, None, s2, 0.1);
                 assert!((nll - out.neg_log_likelihood).abs() < 1e-6 * nll.abs().max(1.0), "{simd:?}, σ² {s2}");
             }
+        }
+    }
+
+    /// The dense single-precision E-step split over the pool in chunks of
+    /// data rows (CPD's `parallel_rows`) gives the textbook sums on every
+    /// kernel level, and the same bits on 1 and 3 threads; a row count that
+    /// is no whole number of chunks or blocks (1,001) leaves a short last chunk.
+    #[test]
+    fn the_split_dense_e_step_matches_the_textbook_one_on_any_thread_count() {
+        let (x, y) = (cloud(1001, 21), cloud(203, 22));
+        assert!(dense_chunks(x.len()).0 > 1, "the test must split");
+        for simd in simd_levels() {
+            let run = |threads: usize| {
+                let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("a pool");
+                pool.install(|| {
+                    let mut e = EStep::new(&x);
+                    (e.single_precision, e.parallel_rows, e.simd) = (true, true, simd);
+                    let mut out = Posteriors::default();
+                    e.run(&y, 0.05, 0.1, &mut out);
+                    out
+                })
+            };
+            let (one, three) = (run(1), run(3));
+            assert_close(&one, &reference(&x, &y, 0.05, 0.1), 1e-4);
+            assert!(
+                one.p1 == three.p1 && one.px == three.px && one.pt1 == three.pt1,
+                "{simd:?}: the sums depend on the thread count"
+            );
+            assert_eq!(one.neg_log_likelihood, three.neg_log_likelihood);
         }
     }
 

@@ -15,9 +15,7 @@
 
 use std::arch::x86_64::*;
 
-use super::{
-    close_centroid_rows, close_row, store_posterior_sums, F32Buffers, LogSum, Posteriors, LANES, P3, ROW_BLOCK as BLOCK,
-};
+use super::{close_centroid_rows, close_row, DenseRows, F32Buffers, LogSum, LANES, P3, ROW_BLOCK as BLOCK};
 use crate::shape::fastexp::{EXP2_CUT_F32, EXP2_SERIES_F32};
 
 const WIDE: usize = 16;
@@ -83,10 +81,10 @@ fn lane_sum_f64(v: __m512) -> f64 {
 /// # Safety
 /// The CPU must have AVX-512F.
 #[target_feature(enable = "avx512f")]
-pub(super) unsafe fn dense_rows<const STATS: bool>(b: &mut F32Buffers, m: usize, k: f32, c: f64, out: &mut Posteriors) {
-    let F32Buffers { x, ys, pi, row, acc, .. } = b;
+pub(super) unsafe fn dense_rows<const STATS: bool>(job: DenseRows<'_>, k: f32, c: f64) -> f64 {
+    let DenseRows { x, ys, pi, row, acc, pt1: pt1_out } = job;
     let m8 = pi.len();
-    assert!(m8.is_multiple_of(LANES) && ys.iter().all(|v| v.len() == m8) && m <= m8);
+    assert!(m8.is_multiple_of(LANES) && ys.iter().all(|v| v.len() == m8) && (!STATS || pt1_out.len() == x.len()));
     // The rows and the sums are whole wide vectors, so only the moving
     // points' loads need a tail mask (masked stores are slow on AMD).
     let m16 = m8.next_multiple_of(WIDE);
@@ -108,7 +106,7 @@ pub(super) unsafe fn dense_rows<const STATS: bool>(b: &mut F32Buffers, m: usize,
         // SAFETY: `rows` points into buffers of the lengths it records.
         let pt1 = unsafe { rows.block::<BLOCK, STATS>(block.try_into().expect("a whole block"), &mut log_den) };
         if STATS {
-            out.pt1[i * BLOCK..(i + 1) * BLOCK].copy_from_slice(&pt1);
+            pt1_out[i * BLOCK..(i + 1) * BLOCK].copy_from_slice(&pt1);
         }
     }
     let done = x.len() - blocks.remainder().len();
@@ -116,13 +114,10 @@ pub(super) unsafe fn dense_rows<const STATS: bool>(b: &mut F32Buffers, m: usize,
         // SAFETY: as above.
         let pt1 = unsafe { rows.block::<1, STATS>(&[*xn], &mut log_den) };
         if STATS {
-            out.pt1[done + i] = pt1[0];
+            pt1_out[done + i] = pt1[0];
         }
     }
-    if STATS {
-        store_posterior_sums(acc, m, out);
-    }
-    out.neg_log_likelihood -= log_den.total();
+    log_den.total()
 }
 
 /// The moving points (three columns) and their weights, `m8` long, with the
