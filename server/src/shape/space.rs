@@ -21,8 +21,9 @@ use std::time::Instant;
 /// Artefact format version; bump on any change of the stored fields'
 /// meaning, or of the build's numerics, so that cached builds are redone
 /// (4: the kernel factor by pivoted Cholesky, the CPD's E-step in single
-/// precision and its M-step's Q in f32: values move in the sixth digit).
-pub const FORMAT_VERSION: u32 = 4;
+/// precision and its M-step's Q in f32: values move in the sixth digit;
+/// 5: the M-step's products fused on AVX2 and AVX-512, last-bit changes).
+pub const FORMAT_VERSION: u32 = 5;
 const MAGIC: &[u8; 8] = b"GRSPSPC\0";
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
