@@ -47,7 +47,8 @@ pub struct LowRankFactor {
     level: Level,
 }
 
-/// The instruction set a kernel body is compiled for (same bits on each).
+/// The instruction set a kernel body is compiled for (AVX2 and AVX-512 give
+/// the same bits; plain x86-64, unfused, rounds differently).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Level {
     Portable,
