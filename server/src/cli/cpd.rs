@@ -66,7 +66,6 @@ pub fn run(a: CpdArgs) -> CliResult {
             lambda: a.lambda,
             max_rank: a.max_rank,
             rank_tol: a.rank_tol,
-            ..Default::default()
         };
         // The kernel factor comes first (seconds at tens of thousands of points).
         let bar = super::progress_bar(a.iters as u64, "kernel");

@@ -137,7 +137,6 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                 known_viewpoint: !unknown_viewpoint,
                 seed,
                 register,
-                ..Default::default()
             };
 
             // The demonstration's hand keypoints, whose transfer a grasp depends on.
