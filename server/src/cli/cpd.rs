@@ -60,13 +60,7 @@ pub fn run(a: CpdArgs) -> CliResult {
             "source_points": src.len(), "target_points": dst.len(),
         })
     } else {
-        let opts = NonRigidOptions {
-            em,
-            beta: a.beta,
-            lambda: a.lambda,
-            max_rank: a.max_rank,
-            rank_tol: a.rank_tol,
-        };
+        let opts = NonRigidOptions { em, beta: a.beta, lambda: a.lambda, max_rank: a.max_rank, rank_tol: a.rank_tol };
         // The kernel factor comes first (seconds at tens of thousands of points).
         let bar = super::progress_bar(a.iters as u64, "kernel");
         bar.tick();

@@ -11,8 +11,8 @@
 
 use super::estep::{dist2, Simd, P3};
 use super::fastexp::exp_neg;
-use faer::prelude::*;
 use crate::simd::clear_upper_state;
+use faer::prelude::*;
 use faer::Side;
 use rayon::prelude::*;
 
@@ -149,13 +149,7 @@ fn kept_rank(s: &[f64], max_rank: usize, rel_tol: f64) -> usize {
 /// the eigenvalues the caller drops anyway. Also stops at a pivot that is
 /// rounding error and at `max_columns`. Returns L by columns (M values
 /// each) and the trace left out.
-fn pivoted_cholesky(
-    points: &[P3],
-    beta: f64,
-    rel_tol: f64,
-    max_columns: usize,
-    simd: Simd,
-) -> (Vec<f64>, f64) {
+fn pivoted_cholesky(points: &[P3], beta: f64, rel_tol: f64, max_columns: usize, simd: Simd) -> (Vec<f64>, f64) {
     let m = points.len();
     let kb = -0.5 / (beta * beta);
     let mut d = vec![1.0f64; m];
