@@ -273,7 +273,7 @@ impl EStep {
             let job = DenseRows { x, ys, pi, row, acc, pt1 };
             out.neg_log_likelihood -= dense_f32_rows::<STATS>(simd, job, k, c);
             if STATS {
-                store_posterior_sums(acc, m, out);
+                add_posterior_sums(acc, m, out);
             }
             return;
         }
@@ -291,14 +291,7 @@ impl EStep {
             })
             .collect();
         for (s, log) in self.chunk_scratch[..chunks].iter().zip(&logs) {
-            let [p1, px0, px1, px2] = &s.acc;
-            for i in 0..m {
-                out.p1[i] += p1[i] as f64;
-                let px = &mut out.px[i];
-                px[0] += px0[i] as f64;
-                px[1] += px1[i] as f64;
-                px[2] += px2[i] as f64;
-            }
+            add_posterior_sums(&s.acc, m, out);
             out.neg_log_likelihood -= log;
         }
     }
@@ -1076,13 +1069,17 @@ fn dense_f32_rows<const STATS: bool>(simd: Simd, job: DenseRows<'_>, k: f32, c: 
     dense_rows_f32::<false, STATS>(job, k, c)
 }
 
-/// The single-precision posterior sums (P1, PX as three columns) of the
-/// first `m` moving points into `out`.
-fn store_posterior_sums(acc: &[Vec<f32>; 4], m: usize, out: &mut Posteriors) {
+/// Adds the single-precision posterior sums (P1, PX as three columns) of
+/// the first `m` moving points to `out` (zeroed by `run_weighted`): one
+/// pass's sums, or each chunk's in turn.
+fn add_posterior_sums(acc: &[Vec<f32>; 4], m: usize, out: &mut Posteriors) {
     let [p1, px0, px1, px2] = acc;
     for i in 0..m {
-        out.p1[i] = p1[i] as f64;
-        out.px[i] = [px0[i] as f64, px1[i] as f64, px2[i] as f64];
+        out.p1[i] += p1[i] as f64;
+        let px = &mut out.px[i];
+        px[0] += px0[i] as f64;
+        px[1] += px1[i] as f64;
+        px[2] += px2[i] as f64;
     }
 }
 
