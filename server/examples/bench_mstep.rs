@@ -13,14 +13,7 @@ fn main() {
     let reg: Vec<f64> = (0..k).map(|_| r.random()).collect();
     let v: Vec<[f64; 3]> = (0..k).map(|_| [r.random(), r.random(), r.random()]).collect();
     let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("a one-thread pool");
-    let mut levels = vec![Level::Portable];
-    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-        levels.push(Level::Avx2);
-    }
-    if std::arch::is_x86_feature_detected!("avx512f") {
-        levels.push(Level::Avx512);
-    }
-    for level in levels {
+    for level in Level::available() {
         let f = LowRankFactor::with_level(q.as_ref(), level);
         let best = pool.install(|| {
             (0..7)

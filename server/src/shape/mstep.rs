@@ -56,6 +56,24 @@ pub enum Level {
     Avx512,
 }
 
+impl Level {
+    /// Every level this CPU runs, portable first (tests and benchmarks hold
+    /// them to each other).
+    pub fn available() -> Vec<Level> {
+        let mut l = vec![Level::Portable];
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                l.push(Level::Avx2);
+            }
+            if std::is_x86_feature_detected!("avx512f") {
+                l.push(Level::Avx512);
+            }
+        }
+        l
+    }
+}
+
 impl LowRankFactor {
     /// Q (M×k, column-major as faer keeps it), for this CPU's widest level.
     pub fn new(q: faer::MatRef<'_, f64>) -> Self {
@@ -475,20 +493,6 @@ mod tests {
         (0..m.nrows()).map(|j| [m[(j, 0)], m[(j, 1)], m[(j, 2)]]).collect()
     }
 
-    fn levels() -> Vec<Level> {
-        let mut l = vec![Level::Portable];
-        #[cfg(target_arch = "x86_64")]
-        {
-            if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-                l.push(Level::Avx2);
-            }
-            if std::is_x86_feature_detected!("avx512f") {
-                l.push(Level::Avx512);
-            }
-        }
-        l
-    }
-
     /// The M-step's conjugate gradients solve the same system as a direct
     /// solve (to 1e-9), on a random orthonormal Q with a decaying spectrum,
     /// uneven posteriors and a size that leaves partial blocks; every product
@@ -522,7 +526,7 @@ mod tests {
             }
         };
         let mut first: Option<Vec<Vec<[f64; 3]>>> = None;
-        for level in levels() {
+        for level in Level::available() {
             let op = LowRankFactor::with_level(q.as_ref(), level);
             let (z, its) = pcg(&op, &lambda, &p1, s, &rows(&b), &vec![[0.0; 3]; k], 1e-10).expect("converges");
             assert!(its > 0 && its <= PCG_MAX_ITERATIONS);
