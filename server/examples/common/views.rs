@@ -10,6 +10,9 @@ use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 pub struct View {
     pub cloud: Vec<Point3<f64>>,
     pub viewpoint: [f64; 3],
+    /// The instance's ground-truth keypoints in the world frame.
+    #[allow(dead_code)]
+    pub keypoints_world: Vec<[f64; 3]>,
 }
 
 pub fn test_views(category: Category) -> Result<Vec<View>, Box<dyn std::error::Error>> {
@@ -29,7 +32,9 @@ pub fn test_views(category: Category) -> Result<Vec<View>, Box<dyn std::error::E
             let cloud = cam.capture(&scene, view as u64)?.points_world;
             let cloud: Vec<_> = cloud.iter().step_by((cloud.len() / 2000).max(1)).copied().collect();
             let t = cam_pose.translation.vector;
-            views.push(View { cloud, viewpoint: [t.x, t.y, t.z] });
+            let keypoints_world =
+                inst.keypoints.iter().map(|k| (pose * Point3::from(k.position)).coords.into()).collect();
+            views.push(View { cloud, viewpoint: [t.x, t.y, t.z], keypoints_world });
         }
     }
     Ok(views)
