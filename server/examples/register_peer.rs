@@ -52,10 +52,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for known_viewpoint in [false, true] {
         let mut fits = Vec::new();
         for view in &views {
-            let opts = RegisterOptions {
-                viewpoint: known_viewpoint.then_some(view.viewpoint),
-                ..RegisterOptions::default()
-            };
+            let opts =
+                RegisterOptions { viewpoint: known_viewpoint.then_some(view.viewpoint), ..RegisterOptions::default() };
             let mut elapsed_ms = Vec::with_capacity(repeats);
             let mut last = None;
             for _ in 0..repeats.max(1) {
