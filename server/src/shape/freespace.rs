@@ -29,6 +29,15 @@ pub struct FreeSpace {
 impl FreeSpace {
     /// Range image of `cloud` seen from `viewpoint`; `margin` (m) forgives noise.
     pub fn new(cloud: &[P3], viewpoint: Vector3<f64>, margin: f64) -> Option<Self> {
+        Self::with_cells(cloud, viewpoint, margin, 3.0)
+    }
+
+    /// As [`Self::new`] with cells `spacings` point spacings wide. Finer
+    /// cells leave holes between samples (empty cells, which
+    /// [`Self::violation_fraction`] would take for seen-through space) but
+    /// span less depth on a slanted surface, so [`Self::hidden_behind_seen`]
+    /// flags fewer points that the camera did see.
+    pub fn with_cells(cloud: &[P3], viewpoint: Vector3<f64>, margin: f64, spacings: f64) -> Option<Self> {
         if cloud.len() < 20 {
             return None;
         }
@@ -50,9 +59,9 @@ impl FreeSpace {
         if !(lo[0] < hi[0] && lo[1] < hi[1]) {
             return None;
         }
-        // Cells about three point spacings wide: holes between samples do not count as empty.
+        // Cells a few point spacings wide (three for `new`): holes between samples do not count as empty.
         let area = (hi[0] - lo[0]) * (hi[1] - lo[1]);
-        let cell = 3.0 * (area / n).sqrt();
+        let cell = spacings * (area / n).sqrt();
         let pad = 2.0 * cell;
         let origin_uv = [lo[0] - pad, lo[1] - pad];
         let dims =
