@@ -125,8 +125,8 @@ pub struct RegisterOptions {
     /// there on as if it were given (see `estimate_viewpoint`; reported as
     /// `Registration::estimated_viewpoint`). Measured (eval transfer
     /// --unknown-viewpoint, 8 views, test / train median keypoint error): mug
-    /// 5.16 / 4.43 → 3.30 / 2.90 mm, drill 3.26 / 2.87 → 2.90 / 2.07 mm;
-    /// hammers (flat: the estimate rarely settles) unchanged.
+    /// 5.16 / 4.43 → 3.30 / 2.90 mm, drill 3.26 / 2.87 → 2.90 / 2.11 mm;
+    /// hammers (flat: the estimate rarely settles) unchanged; 1.5-2 ms more a fit.
     pub estimate_viewpoint: bool,
     pub seed: u64,
 }
@@ -527,7 +527,8 @@ impl Registrar {
         // The race's winner is a better pose than the coarse stage's best: an
         // estimated viewpoint is estimated again from it for the final fits
         // (measured, eval transfer --unknown-viewpoint test / train median: mug
-        // 3.41 / 3.14 → 3.30 / 2.90 mm, drill 3.10 / 2.13 → 2.90 / 2.07).
+        // 3.41 / 3.14 → 3.30 / 2.90 mm, drill 3.10 / 2.13 → 2.90 / 2.07, before
+        // the whole-surface check).
         let reestimated = (!given_viewpoint && opts.estimate_viewpoint)
             .then(|| estimate_viewpoint(&models.race, &models.race_normals, &lead.pose, &race_x, up))
             .flatten();
@@ -1138,8 +1139,10 @@ const VIEWPOINT_MAX_OCCLUDED: f64 = 0.25;
 /// lie within 30° of it. The distance is not observable; the camera is put
 /// where one framing the view would be (3 view diagonals, at least 0.25 m).
 /// None when the directions do not settle (a flat tool looks alike from a
-/// wide cone above it) or none is plausible (a whole-surface or merged cloud
-/// is seen behind itself from everywhere: about half its points).
+/// wide cone above it) or none is plausible: a whole-surface or merged cloud
+/// is seen behind itself from everywhere (checked at the chosen direction on
+/// a range image one point spacing fine, where a single view's own points
+/// rarely hide each other).
 fn estimate_viewpoint(
     model: &LinearModel,
     normals: &[P3],
