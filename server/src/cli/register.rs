@@ -32,6 +32,8 @@ pub struct ViewArgs {
     up: String,
     /// The camera's position in the cloud's frame, "x,y,z" ("0,0,0" for a cloud in
     /// the camera frame): model points facing away from it are not expected in the view.
+    /// Without it one is estimated from the view when the view settles it
+    /// (`estimated_viewpoint` in the JSON); giving it is more accurate.
     #[arg(long, allow_hyphen_values = true)]
     viewpoint: Option<String>,
 }
@@ -98,6 +100,8 @@ pub fn run(a: RegisterArgs) -> CliResult {
         "iterations": reg.iterations,
         "elapsed_ms": reg.elapsed_ms,
         "stage_ms": reg.stage_ms,
+        // The camera position assumed when --viewpoint was not given (null: none used).
+        "estimated_viewpoint": reg.estimated_viewpoint,
     });
     if a.json {
         print_json(&out)?;
