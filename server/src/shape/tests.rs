@@ -393,3 +393,55 @@ fn a_view_without_its_camera_position_gets_one_estimated() {
     let r = reg.register(&whole, &RegisterOptions::default()).unwrap();
     assert!(r.estimated_viewpoint.is_none(), "a whole surface seen from {:?}", r.estimated_viewpoint);
 }
+
+#[test]
+fn a_half_hidden_handle_is_not_placed_on_the_mirror_side() {
+    // A handle turned 130-160° away from the camera shows only an edge at the
+    // body's silhouette; its mirror image about the line of sight hides it as
+    // well but sticks out of the silhouette on the other side. The yaw sweep
+    // once scored turns on the race's sparse model and about the world's up,
+    // and chose the mirror, unflagged (eval transfer mug_test_00 view 5: 95°
+    // off). Fits left unflagged should have the handle on its side; flagged
+    // fits may sit anywhere in the arc the view allows. Measured on these 192
+    // views (3 test mugs, 8 cameras, 8 turns): before, 11 of 70 unflagged fits
+    // more than 30° off and an unflagged keypoint error p90 of 38.5 mm; with
+    // the sweep on the polish model about the tool's axis, 5 of 60 and 10.7 mm.
+    let reg = mug_registrar();
+    let t = Translation3::new(0.03, -0.02, 0.0);
+    let centre = Point3::new(t.x, t.y, 0.05);
+    let (mut wrong, mut flagged, mut fits, mut errs) = (Vec::new(), 0, 0, Vec::new());
+    for test in tools::family(Category::Mug).unwrap().into_iter().filter(|i| i.split == Split::Test) {
+        for view in 0..8 {
+            for offset_deg in [-160.0f64, -150.0, -140.0, -130.0, 130.0, 140.0, 150.0, 160.0] {
+                let cam = standard_view(view, 8, centre, test.mesh.diagonal(), Intrinsics::default()).unwrap();
+                let eye = cam.translation.vector;
+                let azimuth = (eye.y - t.y).atan2(eye.x - t.x);
+                let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), azimuth + offset_deg.to_radians());
+                let pose = Isometry3::from_parts(t, rot);
+                let (cloud, cam_pose) = capture(&test.mesh, &pose, centre, view, 11 + view as u64);
+                let opts =
+                    RegisterOptions { viewpoint: Some(cam_pose.translation.vector.into()), ..Default::default() };
+                let r = reg.register(&cloud, &opts).unwrap();
+                let rot_err = (r.rotation_cloud_from_canonical * rot.inverse()).angle().to_degrees();
+                fits += 1;
+                if r.fit.ambiguous_pose {
+                    flagged += 1;
+                    continue;
+                }
+                if rot_err > 30.0 {
+                    wrong.push((test.name.clone(), view, offset_deg, rot_err.round()));
+                }
+                for (p, kp) in r.keypoints.iter().zip(&test.keypoints) {
+                    errs.push((Vector3::from(p.position) - (pose * Point3::from(kp.position)).coords).norm() * 1e3);
+                }
+            }
+        }
+    }
+    errs.sort_by(f64::total_cmp);
+    let p90 = errs[errs.len() * 9 / 10];
+    eprintln!(
+        "{fits} fits, {flagged} flagged, unflagged more than 30° off: {wrong:?}; unflagged keypoint p90 {p90:.1} mm"
+    );
+    assert!(wrong.len() <= 7, "unflagged fits off by more than 30° (instance, view, offset°, error°): {wrong:?}");
+    assert!(p90 < 20.0, "unflagged keypoint error p90 {p90:.1} mm");
+}
