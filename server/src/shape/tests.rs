@@ -405,7 +405,8 @@ fn a_half_hidden_handle_is_not_placed_on_the_mirror_side() {
     // fits may sit anywhere in the arc the view allows. Measured on these 192
     // views (3 test mugs, 8 cameras, 8 turns): before, 11 of 70 unflagged fits
     // more than 30° off and an unflagged keypoint error p90 of 38.5 mm; with
-    // the sweep on the polish model about the tool's axis, 5 of 60 and 10.7 mm.
+    // the sweep on the polish model about the tool's axis, 5 of 60 and 10.7
+    // mm; with its margin 0.05 → 0.08 nats a point, 1 of 53 and 7.3 mm.
     let reg = mug_registrar();
     let t = Translation3::new(0.03, -0.02, 0.0);
     let centre = Point3::new(t.x, t.y, 0.05);
@@ -442,6 +443,6 @@ fn a_half_hidden_handle_is_not_placed_on_the_mirror_side() {
     eprintln!(
         "{fits} fits, {flagged} flagged, unflagged more than 30° off: {wrong:?}; unflagged keypoint p90 {p90:.1} mm"
     );
-    assert!(wrong.len() <= 7, "unflagged fits off by more than 30° (instance, view, offset°, error°): {wrong:?}");
-    assert!(p90 < 20.0, "unflagged keypoint error p90 {p90:.1} mm");
+    assert!(wrong.len() <= 4, "unflagged fits off by more than 30° (instance, view, offset°, error°): {wrong:?}");
+    assert!(p90 < 15.0, "unflagged keypoint error p90 {p90:.1} mm");
 }
