@@ -401,6 +401,10 @@ struct Samples {
     compute: Vec<u64>,
     overhead: Vec<u64>,
     overhead_excl_fill: Vec<u64>,
+    /// Round trip (without the fill) minus the daemon's receipt-to-answer time: the two legs.
+    legs: Vec<u64>,
+    /// The daemon's receipt-to-answer time minus engine time: its own handling.
+    server_handling: Vec<u64>,
 }
 
 impl Samples {
@@ -411,6 +415,8 @@ impl Samples {
         self.compute.push(compute);
         self.overhead.push((rtt + fill).saturating_sub(compute));
         self.overhead_excl_fill.push(rtt.saturating_sub(compute));
+        self.legs.push(rtt.saturating_sub(server));
+        self.server_handling.push(server.saturating_sub(compute));
     }
 }
 
@@ -468,6 +474,11 @@ fn bench(cli: &Cli, b: &BenchArgs, opts: ClientOptions) -> Result<(), Failure> {
     v["rtt_excl_fill_us"] = serde_json::json!({"p50": pct_us(&shm.rtt_excl_fill, 0.5), "p99": pct_us(&shm.rtt_excl_fill, 0.99), "max": pct_us(&shm.rtt_excl_fill, 1.0)});
     v["transport_overhead_excl_fill_us"] =
         serde_json::json!({"p50": pct_us(&shm.overhead_excl_fill, 0.5), "p99": pct_us(&shm.overhead_excl_fill, 0.99)});
+    // Where the overhead lies: in the two legs between the processes, or in the daemon around the engine.
+    v["overhead_split_us"] = serde_json::json!({
+        "legs_p50": pct_us(&shm.legs, 0.5), "legs_p99": pct_us(&shm.legs, 0.99),
+        "daemon_handling_p50": pct_us(&shm.server_handling, 0.5), "daemon_handling_p99": pct_us(&shm.server_handling, 0.99),
+    });
     v["method"] = serde_json::json!(match b.method {
         BenchMethod::Register => "register",
         BenchMethod::Health => "health",
@@ -493,6 +504,7 @@ fn bench(cli: &Cli, b: &BenchArgs, opts: ClientOptions) -> Result<(), Failure> {
         "rtt_excl_fill_us": "shared memory only: from send to response (the client produced the cloud in shared memory)",
         "server_us": "p50: engine time in the daemon (ResponseHeader::compute_ns); total_p50: receipt to answer (server_ns)",
         "transport_overhead_us": "per request rtt minus engine time, then percentiles",
+        "overhead_split_us": "legs: rtt (without the fill) minus the daemon's receipt-to-answer time; daemon_handling: that time minus engine time",
     });
     print(cli.json, &v, || {
         let what = match b.method {
