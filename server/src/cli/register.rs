@@ -38,9 +38,12 @@ pub struct ViewArgs {
     viewpoint: Option<String>,
 }
 
+/// The up direction and the camera position, each when known.
+pub type UpAndViewpoint = (Option<[f64; 3]>, Option<[f64; 3]>);
+
 impl ViewArgs {
     /// (up, viewpoint), parsed.
-    pub fn parse(&self) -> Result<(Option<[f64; 3]>, Option<[f64; 3]>), String> {
+    pub fn parse(&self) -> Result<UpAndViewpoint, String> {
         let viewpoint = self.viewpoint.as_deref().map(|v| parse_vec3("--viewpoint", v)).transpose()?;
         Ok((parse_up(&self.up)?, viewpoint))
     }

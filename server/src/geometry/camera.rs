@@ -198,7 +198,7 @@ pub fn standard_view(
 ) -> Result<Isometry3<f64>, CameraError> {
     let count = count.max(1);
     let azimuth = std::f64::consts::TAU * (k % count) as f64 / count as f64;
-    let elevation = if k % 2 == 0 { 25f64 } else { 45f64 }.to_radians();
+    let elevation = if k.is_multiple_of(2) { 25f64 } else { 45f64 }.to_radians();
     let fov_half = ((intrinsics.width as f64 / 2.0) / intrinsics.fx).atan();
     let distance = (object_size.max(1e-3) * 1.5 / fov_half.tan()).max(0.25);
     let dir = Vector3::new(azimuth.cos() * elevation.cos(), azimuth.sin() * elevation.cos(), elevation.sin());

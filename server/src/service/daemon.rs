@@ -100,6 +100,8 @@ struct JobMeta {
 }
 
 /// A client's reply notifier: being opened, open, or not openable (retried later).
+// One a client: boxing the open variant would buy nothing.
+#[allow(clippy::large_enum_variant)]
 enum Reply {
     Opening {
         notify_when_open: bool,
@@ -545,6 +547,8 @@ impl Shared {
         q.pop_front()
     }
 
+    /// Queues a job, or hands it back (to be answered) when the queue is full.
+    #[allow(clippy::result_large_err)]
     fn submit(&self, job: Job) -> Result<(), (Job, Status)> {
         let mut q = lock(&self.queue);
         if q.len() >= self.queue_capacity {

@@ -220,7 +220,9 @@ impl ShapeSpace {
         let m = c.len();
         // Each instance independently (in parallel: the fits share only the kernel factor).
         let done = std::sync::atomic::AtomicUsize::new(0);
-        let fits: Vec<Result<(Vec<f64>, Vec<f64>, f64, bool), SpaceError>> = training
+        // Per instance: flattened W, flattened G·W (the displacements), residual σ in mm, stiffened.
+        type InstanceFit = Result<(Vec<f64>, Vec<f64>, f64, bool), SpaceError>;
+        let fits: Vec<InstanceFit> = training
             .par_iter()
             .enumerate()
             .map(|(i, shape)| {
