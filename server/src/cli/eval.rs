@@ -61,6 +61,10 @@ pub enum EvalCommand {
         data: Option<std::path::PathBuf>,
         #[arg(long, default_value_t = 7)]
         seed: u64,
+        /// Tell the registration where the camera is (a calibrated camera, as
+        /// `eval transfer` does by default); without it the viewpoint is estimated.
+        #[arg(long)]
+        known_viewpoint: bool,
         #[arg(long)]
         json: bool,
     },
@@ -70,7 +74,7 @@ pub enum EvalCommand {
 
 pub fn run(cmd: EvalCommand) -> CliResult {
     match cmd {
-        EvalCommand::Ycb { category, views, data, seed, json } => {
+        EvalCommand::Ycb { category, views, data, seed, known_viewpoint, json } => {
             let data = data.unwrap_or_else(|| super::assets_dir().join("../../shared/data"));
             let cats: Vec<Category> = match category {
                 Some(c) => vec![c.parse()?],
@@ -84,15 +88,15 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                     continue;
                 }
                 let registrar = Registrar::new(builtin::load_or_build(c, &spaces_dir(), |_, _| {})?);
-                reports.push(graspd::eval::ycb::evaluate(&registrar, c, &path, views, seed)?);
+                reports.push(graspd::eval::ycb::evaluate(&registrar, c, &path, views, seed, known_viewpoint)?);
             }
             if json {
                 print_json(&reports)?;
             } else {
                 for r in &reports {
                     println!(
-                        "{}: chamfer median {:.1} mm (p90 {:.1}), inliers median {:.2}, confident {:.0}%, scale median {:.2}, fit p50 {:.1} ms",
-                        r.category, r.chamfer_mm.median, r.chamfer_mm.p90, r.inlier_fraction.median, r.confident_fraction * 100.0, r.scale.median, r.fit_ms.median
+                        "{} ({} viewpoint): chamfer median {:.1} mm (p90 {:.1}), inliers median {:.2}, confident {:.0}%, scale median {:.2}, fit p50 {:.1} ms",
+                        r.category, if r.known_viewpoint { "known" } else { "estimated" }, r.chamfer_mm.median, r.chamfer_mm.p90, r.inlier_fraction.median, r.confident_fraction * 100.0, r.scale.median, r.fit_ms.median
                     );
                 }
             }

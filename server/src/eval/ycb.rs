@@ -28,6 +28,8 @@ pub struct YcbReport {
     pub category: String,
     pub mesh: String,
     pub views: usize,
+    /// The registration was told the camera position (else it estimated it).
+    pub known_viewpoint: bool,
     pub chamfer_mm: Percentiles,
     pub inlier_fraction: Percentiles,
     pub confident_fraction: f64,
@@ -41,6 +43,7 @@ pub fn evaluate(
     mesh_path: &Path,
     views: usize,
     seed: u64,
+    known_viewpoint: bool,
 ) -> Result<YcbReport, Box<dyn std::error::Error>> {
     let mesh = crate::io::read_mesh(mesh_path)?.mesh;
     let truth = to_p3(&sample_points(&mesh, 4000, 99)?);
@@ -54,7 +57,9 @@ pub fn evaluate(
         let cam =
             DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: pose, noise: DepthNoise::default() };
         let cloud = cam.capture(&scene, seed + view as u64)?.points_world;
-        let reg = registrar.register(&cloud, &RegisterOptions { seed: seed + view as u64, ..Default::default() })?;
+        let viewpoint = known_viewpoint.then(|| pose.translation.vector.into());
+        let reg = registrar
+            .register(&cloud, &RegisterOptions { seed: seed + view as u64, viewpoint, ..Default::default() })?;
         chamfer.push(chamfer_mm(&to_p3(&registrar.completed_shape(&reg)), &truth));
         inliers.push(reg.fit.inlier_fraction);
         scale.push(reg.scale);
@@ -65,6 +70,7 @@ pub fn evaluate(
         category: category.name().into(),
         mesh: mesh_path.display().to_string(),
         views,
+        known_viewpoint,
         chamfer_mm: percentiles(chamfer),
         inlier_fraction: percentiles(inliers),
         confident_fraction: confident as f64 / views.max(1) as f64,
