@@ -395,6 +395,46 @@ fn a_view_without_its_camera_position_gets_one_estimated() {
 }
 
 #[test]
+fn a_flat_tool_without_its_camera_position_gets_a_camera_above_it() {
+    // A hammer lying flat looks alike from a wide cone of directions above
+    // it; the estimate then takes the cone's mean (near straight down) rather
+    // than none (as before: all 8 views refused), and the fit uses it.
+    let space = builtin::build(Category::Hammer, &BuildOptions::default(), |_, _| {}).expect("hammer space builds").0;
+    let reg = Registrar::new(space);
+    let test = tools::family(Category::Hammer).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap();
+    let middle = test.mesh.aabb().map(|(lo, hi)| Point3::from((lo.coords + hi.coords) / 2.0)).unwrap();
+    let (mut above, mut errs, mut worst_view) = (0, Vec::new(), 0.0f64);
+    for (k, yaw) in [0.3f64, 1.1, 1.9, 2.7, 3.5, 4.3, 5.1, 5.9].iter().enumerate() {
+        // Framed on the hammer's middle, as `eval transfer` frames its views.
+        let pose = Isometry3::from_parts(
+            Translation3::new(0.05, -0.03, 0.0),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), *yaw),
+        );
+        let (cloud, _) = capture(&test.mesh, &pose, pose * middle, k, k as u64);
+        let r = reg.register(&cloud, &RegisterOptions::default()).unwrap();
+        let centroid = cloud.iter().fold(Vector3::zeros(), |a, p| a + p.coords) / cloud.len() as f64;
+        if let Some(vp) = r.estimated_viewpoint {
+            above += ((Vector3::from(vp) - centroid).normalize().z > 25f64.to_radians().cos()) as usize;
+        }
+        let view: Vec<f64> = r
+            .keypoints
+            .iter()
+            .zip(&test.keypoints)
+            .map(|(p, t)| (Vector3::from(p.position) - (pose * Point3::from(t.position)).coords).norm() * 1e3)
+            .collect();
+        worst_view = worst_view.max(view.iter().sum::<f64>() / view.len() as f64);
+        errs.extend(view);
+    }
+    errs.sort_by(f64::total_cmp);
+    let median = errs[errs.len() / 2];
+    // Measured: 8 of 8 above, median 4.3 mm, worst view 5.6 mm. Without the
+    // estimate 3.8 and 5.1: on these 8 views it costs a little, where over
+    // `eval transfer`'s 3 × 24 test views it gains (see VIEWPOINT_ABOVE_WITHIN).
+    assert!(above >= 6, "a camera above the hammer on {above} of 8 views");
+    assert!(median < 5.0 && worst_view < 7.0, "keypoint median {median:.2} mm, worst view's mean {worst_view:.2} mm");
+}
+
+#[test]
 fn a_half_hidden_handle_is_not_placed_on_the_mirror_side() {
     // A handle turned 130-160° away from the camera shows only an edge at the
     // body's silhouette; its mirror image about the line of sight hides it as
