@@ -398,7 +398,8 @@ fn a_view_without_its_camera_position_gets_one_estimated() {
 fn a_flat_tool_without_its_camera_position_gets_a_camera_above_it() {
     // A hammer lying flat looks alike from a wide cone of directions above
     // it; the estimate then takes the cone's mean (near straight down) rather
-    // than none (as before: all 8 views refused), and the fit uses it.
+    // than none (as before: all 8 views refused), and the fit weighs the
+    // model by what a camera there would see.
     let space = builtin::build(Category::Hammer, &BuildOptions::default(), |_, _| {}).expect("hammer space builds").0;
     let reg = Registrar::new(space);
     let test = tools::family(Category::Hammer).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap();
