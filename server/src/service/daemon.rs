@@ -485,6 +485,12 @@ impl Shared {
         }
     }
 
+    /// Frees the client's slot and answers an admitted job with `status` and no body.
+    fn reject<R: Debug + ZeroCopySend + Copy + Default>(&self, method: Method, job: CloudJob<R>, status: Status) {
+        self.release(method, job.meta.client);
+        self.answer_in(method, &job.meta.header, Ok(job.response), status, None, job.meta.received, 0);
+    }
+
     /// The work of a cloud request: (status, body, engine ns), or None when the client is gone.
     fn run_cloud<R: Debug + ZeroCopySend + Copy + Default>(
         &self,
@@ -579,22 +585,8 @@ impl Shared {
         for job in leftover {
             let s = || Status::new(StatusCode::Unavailable, "the daemon shut down before this request was worked on");
             match job {
-                Job::Register(job) => {
-                    self.release(Method::Register, job.meta.client);
-                    self.answer_in(
-                        Method::Register,
-                        &job.meta.header,
-                        Ok(job.response),
-                        s(),
-                        None,
-                        job.meta.received,
-                        0,
-                    );
-                }
-                Job::Grasp(job) => {
-                    self.release(Method::Grasp, job.meta.client);
-                    self.answer_in(Method::Grasp, &job.meta.header, Ok(job.response), s(), None, job.meta.received, 0);
-                }
+                Job::Register(job) => self.reject(Method::Register, job, s()),
+                Job::Grasp(job) => self.reject(Method::Grasp, job, s()),
             }
         }
     }
@@ -827,8 +819,7 @@ fn dispatch(shared: &Shared, ep: &Endpoints, take: bool) -> (usize, Option<Job>)
                             return (handled, Some(job));
                         }
                         if let Err((Job::$variant(job), s)) = shared.submit(job) {
-                            shared.release($method, job.meta.client);
-                            shared.answer_in($method, &job.meta.header, Ok(job.response), s, None, t, 0);
+                            shared.reject($method, job, s);
                         }
                     }
                 }
