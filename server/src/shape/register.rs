@@ -1194,8 +1194,8 @@ const VIEWPOINT_MAX_SPREAD: f64 = 30.0 * std::f64::consts::PI / 180.0;
 /// alone, the cone's mean changed nothing: the figures below went back to the
 /// old ones, YCB hammer 5.3 mm). The cost is the rotation's p90 (hammer 1-2°
 /// → 3-5°): the sides a camera 25-45° up saw face across the mean, and some
-/// count as hidden. Measured with `--unknown-viewpoint`, 8 views, seeds 7 / 11 / 23: the
-/// hammer's estimates were all refused (cones 43-60° wide around up); with
+/// count as hidden. Measured with `--unknown-viewpoint`, 8 views, seeds 7 /
+/// 11 / 23: the hammer's estimates were all refused (cones 43-60° wide around up); with
 /// them used, test keypoint median / p90 3.96 / 8.4, 4.19 / 8.0, 4.10 / 8.5 →
 /// 3.57 / 6.1, 3.64 / 6.0, 3.70 / 6.9 mm, train median 3.34, 3.36, 3.15 →
 /// 2.82, 2.88, 2.80 mm; the real YCB hammer (`eval ycb`) 5.27 → 3.9 mm
