@@ -24,12 +24,23 @@ fn mug_registrar() -> &'static Registrar {
     REG.get_or_init(|| Registrar::new(mug_space().clone()))
 }
 
+fn hammer_registrar() -> &'static Registrar {
+    static REG: OnceLock<Registrar> = OnceLock::new();
+    REG.get_or_init(|| {
+        Registrar::new(
+            builtin::build(Category::Hammer, &BuildOptions::default(), |_, _| {}).expect("hammer space builds").0,
+        )
+    })
+}
+
+/// A tool standing on the table at `yaw`, off the origin.
+fn on_table(yaw: f64) -> Isometry3<f64> {
+    Isometry3::from_parts(Translation3::new(0.05, -0.03, 0.0), UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw))
+}
+
 /// One noisy view of `mesh` placed at `yaw` on a table.
 fn view_of(mesh: &crate::geometry::TriMesh, yaw: f64, view: usize) -> (Vec<Point3<f64>>, Isometry3<f64>) {
-    let pose = Isometry3::from_parts(
-        Translation3::new(0.05, -0.03, 0.0),
-        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
-    );
+    let pose = on_table(yaw);
     (capture(mesh, &pose, pose * Point3::new(0.0, 0.0, 0.05), view, 3).0, pose)
 }
 
@@ -227,8 +238,7 @@ fn folding_fits_are_refitted_stiffer() {
 #[test]
 fn a_hammer_view_with_ten_percent_outliers_registers() {
     use rand::SeedableRng;
-    let space = builtin::build(Category::Hammer, &BuildOptions::default(), |_, _| {}).expect("hammer space builds").0;
-    let reg = Registrar::new(space);
+    let reg = hammer_registrar();
     let test = tools::family(Category::Hammer).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
     let mut errs = Vec::new();
@@ -260,8 +270,7 @@ fn a_hammer_view_with_ten_percent_outliers_registers() {
 fn a_hammer_larger_than_the_family_registers_despite_the_tight_scale_prior() {
     use crate::shape::register::{default_scale_prior_std, LOOSE_SCALE_PRIOR_STD};
     assert!(default_scale_prior_std("hammer") < 0.05 && default_scale_prior_std("mug") == LOOSE_SCALE_PRIOR_STD);
-    let space = builtin::build(Category::Hammer, &BuildOptions::default(), |_, _| {}).expect("hammer space builds").0;
-    let reg = Registrar::new(space);
+    let reg = hammer_registrar();
     let test = tools::family(Category::Hammer).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap();
     let grow = 1.3;
     let mut big = test.mesh.clone();
@@ -369,10 +378,7 @@ fn a_view_without_its_camera_position_gets_one_estimated() {
     let test = tools::family(Category::Mug).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap();
     let mut angles = Vec::new();
     for (k, yaw) in [0.4f64, 2.0, 4.4, 5.5].iter().enumerate() {
-        let pose = Isometry3::from_parts(
-            Translation3::new(0.05, -0.03, 0.0),
-            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), *yaw),
-        );
+        let pose = on_table(*yaw);
         let (cloud, cam_pose) = capture(&test.mesh, &pose, pose * Point3::new(0.0, 0.0, 0.05), k * 2 + 1, k as u64);
         let r = reg.register(&cloud, &RegisterOptions::default()).unwrap();
         let centroid = cloud.iter().fold(Vector3::zeros(), |a, p| a + p.coords) / cloud.len() as f64;
@@ -400,17 +406,13 @@ fn a_flat_tool_without_its_camera_position_gets_a_camera_above_it() {
     // it; the estimate then takes the cone's mean (near straight down) rather
     // than none (as before: all 8 views refused), and the fit weighs the
     // model by what a camera there would see.
-    let space = builtin::build(Category::Hammer, &BuildOptions::default(), |_, _| {}).expect("hammer space builds").0;
-    let reg = Registrar::new(space);
+    let reg = hammer_registrar();
     let test = tools::family(Category::Hammer).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap();
     let middle = test.mesh.aabb().map(|(lo, hi)| Point3::from((lo.coords + hi.coords) / 2.0)).unwrap();
     let (mut above, mut errs, mut worst_view) = (0, Vec::new(), 0.0f64);
     for (k, yaw) in [0.3f64, 1.1, 1.9, 2.7, 3.5, 4.3, 5.1, 5.9].iter().enumerate() {
         // Framed on the hammer's middle, as `eval transfer` frames its views.
-        let pose = Isometry3::from_parts(
-            Translation3::new(0.05, -0.03, 0.0),
-            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), *yaw),
-        );
+        let pose = on_table(*yaw);
         let (cloud, _) = capture(&test.mesh, &pose, pose * middle, k, k as u64);
         let r = reg.register(&cloud, &RegisterOptions::default()).unwrap();
         let centroid = cloud.iter().fold(Vector3::zeros(), |a, p| a + p.coords) / cloud.len() as f64;
