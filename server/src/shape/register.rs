@@ -112,6 +112,14 @@ pub struct RegisterOptions {
     /// test / train keypoint p90 10.3 / 24.7 mm (0.03: 20.1 / 28.1; 0.05: 12.9 / 25.8; 0.12:
     /// 11.4 / 22.8 with a third of training views flagged), drill and hammer the same.
     pub yaw_sweep_margin: f64,
+    /// Screen the sweep's turns on the race's sparser model first and score
+    /// only those near its best on the dense one (see [`SWEEP_SCREEN_MARGIN`]).
+    /// Measured (`VIEWPOINT=known bench_register C 3`, two alternating pairs,
+    /// race stage p50): mug 3.6 / 3.5 → 2.1 / 2.2 ms, drill 2.7 / 3.0 → 1.3 /
+    /// 1.4, hammer 3.2 / 3.1 → 1.5 / 1.7; eval transfer keypoint errors
+    /// identical (mug seeds 7, 11, 23 with and without the camera position
+    /// and on its side, drill and hammer seed 7 without it).
+    pub yaw_sweep_screen: bool,
     /// Subsample the view evenly over its surface (one point per voxel)
     /// instead of uniformly over its points. A depth view is dense where the
     /// tool faces and is near the camera; thin parts that settle the pose (a
@@ -170,6 +178,7 @@ impl Default for RegisterOptions {
             upright_prior: 0.1,
             yaw_sweep_steps: 16,
             yaw_sweep_margin: 0.08,
+            yaw_sweep_screen: true,
             even_sampling: true,
             lying_hypotheses: None,
             estimate_viewpoint: true,
@@ -520,6 +529,7 @@ impl Registrar {
                 let sweep = YawSweep {
                     model: &models.polish.model,
                     normals: &models.polish.normals,
+                    screen: Some((&models.race, &models.race_normals)),
                     x: &race_x,
                     viewpoint,
                     free_space,
@@ -854,6 +864,10 @@ impl View<'_> {
 struct YawSweep<'a> {
     model: &'a LinearModel,
     normals: &'a [P3],
+    /// A sparser level (points and normals) that screens the turns first:
+    /// only those it scores within [`SWEEP_SCREEN_MARGIN`] of its best are
+    /// scored on `model`.
+    screen: Option<(&'a LinearModel, &'a [P3])>,
     x: &'a [P3],
     viewpoint: Option<Vector3<f64>>,
     free_space: Option<&'a FreeSpace>,
@@ -867,7 +881,6 @@ impl YawSweep<'_> {
     fn run(&self, lead: &Fit, up: Vector3<f64>, opts: &RegisterOptions) -> (Option<Pose>, bool) {
         let k = opts.yaw_sweep_steps;
         let step = std::f64::consts::TAU / k as f64;
-        let y_model = self.model.evaluate(&lead.latent);
         // Turn about the line through the canonical frame's origin along the
         // tool's own axis nearest up: the category's main body axis (the
         // built-in families are built so).
@@ -878,31 +891,49 @@ impl YawSweep<'_> {
         // Dense sums only: every turn moves the model too far for a neighbour
         // list to be reused (measured: mug fit p50 −0.2 ms).
         estep.truncate_below = 0.0;
-        let view = View { normals: self.normals, viewpoint: self.viewpoint, occlusion: None };
         let mut weights = Vec::new();
         // The lead turned by `steps` sweep steps (fractions allowed) about the pivot line.
         let turned = |steps: f64| -> Pose {
             let r = Rotation3::from_axis_angle(&axis, steps * step).into_inner() * lead.pose.r;
             Pose { r, s: lead.pose.s, t: pivot - lead.pose.s * (r * origin) }
         };
-        let scores: Vec<f64> = (0..k)
-            .map(|i| {
-                let mut pose = turned(i as f64);
-                let mut y_world: Vec<P3> = y_model.iter().map(|y| pose.apply(y)).collect();
-                let w = view.weights(&pose, &y_world, lead.sigma2, &mut weights);
-                if let Some(shift) = estep.centroid_shift(&y_world, w, lead.sigma2, opts.outlier_weight) {
-                    pose.t += Vector3::from(shift);
-                    y_world.iter_mut().zip(&y_model).for_each(|(w, y)| *w = pose.apply(y));
-                }
-                let w = view.weights(&pose, &y_world, lead.sigma2, &mut weights);
-                // Scored by the likelihood alone (the posterior sums are not needed).
-                let nll = estep.neg_log_likelihood(&y_world, w, lead.sigma2, opts.outlier_weight);
-                let violation = self.free_space.map_or(0.0, |fs| {
-                    fs.violation_fraction(&y_world, self.normals.iter().map(|n| pose.r * Vector3::from(*n)))
-                });
-                nll / self.x.len().max(1) as f64 + FREE_SPACE_PENALTY * violation
-            })
-            .collect();
+        // Turn i's score on a level, or +∞ for turns left out.
+        let mut score_turns = |model: &LinearModel, normals: &[P3], wanted: &dyn Fn(usize) -> bool| -> Vec<f64> {
+            let y_model = model.evaluate(&lead.latent);
+            let view = View { normals, viewpoint: self.viewpoint, occlusion: None };
+            (0..k)
+                .map(|i| {
+                    if !wanted(i) {
+                        return f64::INFINITY;
+                    }
+                    let mut pose = turned(i as f64);
+                    let mut y_world: Vec<P3> = y_model.iter().map(|y| pose.apply(y)).collect();
+                    let w = view.weights(&pose, &y_world, lead.sigma2, &mut weights);
+                    if let Some(shift) = estep.centroid_shift(&y_world, w, lead.sigma2, opts.outlier_weight) {
+                        pose.t += Vector3::from(shift);
+                        y_world.iter_mut().zip(&y_model).for_each(|(w, y)| *w = pose.apply(y));
+                    }
+                    let w = view.weights(&pose, &y_world, lead.sigma2, &mut weights);
+                    // Scored by the likelihood alone (the posterior sums are not needed).
+                    let nll = estep.neg_log_likelihood(&y_world, w, lead.sigma2, opts.outlier_weight);
+                    let violation = self.free_space.map_or(0.0, |fs| {
+                        fs.violation_fraction(&y_world, normals.iter().map(|n| pose.r * Vector3::from(*n)))
+                    });
+                    nll / self.x.len().max(1) as f64 + FREE_SPACE_PENALTY * violation
+                })
+                .collect()
+        };
+        let screened = self
+            .screen
+            .filter(|_| opts.yaw_sweep_screen)
+            .map(|(model, normals)| score_turns(model, normals, &|_| true));
+        let scores = match &screened {
+            Some(cheap) => {
+                let floor = cheap.iter().copied().fold(f64::INFINITY, f64::min);
+                score_turns(self.model, self.normals, &|i| i == 0 || cheap[i] <= floor + SWEEP_SCREEN_MARGIN)
+            }
+            None => score_turns(self.model, self.normals, &|_| true),
+        };
         let best = (0..k).min_by(|&a, &b| scores[a].total_cmp(&scores[b])).unwrap_or(0);
         let ok = |i: usize| scores[i % k] <= scores[best] + opts.yaw_sweep_margin;
         let (mut left, mut right) = (0, 0);
@@ -931,6 +962,14 @@ impl YawSweep<'_> {
         (Some(turned(mid)), open)
     }
 }
+
+/// Turns the sweep's sparse screen scores more than this (nats per observed
+/// point) above its best are not scored on the dense level. The screen's own
+/// noise is 0.1-0.3 nats (its points' spacing, see the sweep's comment), so
+/// a turn within `yaw_sweep_margin` of the dense best stays in. Measured on
+/// the half-hidden-handle views of `the_sweep_screen_keeps_the_turns_the_dense_scores_choose`:
+/// at 0.3 a fit came out 6.5° apart from the unscreened one, at 0.45 none.
+const SWEEP_SCREEN_MARGIN: f64 = 0.7;
 
 /// A fit's negative log-likelihood per observed point and the share of its
 /// camera-facing model the view contradicts, both with `level`'s points at
