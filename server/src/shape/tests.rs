@@ -526,3 +526,28 @@ fn the_sweep_screen_keeps_the_turns_the_dense_scores_choose() {
     }
     assert_eq!(fits, 36);
 }
+
+#[test]
+fn squarem_brings_the_latent_fit_nearer_convergence_in_the_same_iterations() {
+    // The refine's latent drifts a little further each EM iteration; SQUAREM
+    // jumps along that path. Against a long plain fit (400 iterations, the
+    // latent EM converges to), 40 accelerated iterations should end much
+    // nearer than 40 plain ones (measured: 0.16 against 0.34, summed over
+    // the three views).
+    let reg = mug_registrar();
+    let test = tools::family(Category::Mug).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap();
+    let refine_only = RegisterOptions { polish_points: 0, tol: 1e-12, ..RegisterOptions::default() };
+    let (mut plain_gap, mut fast_gap) = (0.0, 0.0);
+    for (k, yaw) in [0.4f64, 2.0, 4.4].iter().enumerate() {
+        let (cloud, _) = view_of(&test.mesh, *yaw, k * 3 + 1);
+        let fit = |accelerate: bool, fine_iters: usize| {
+            reg.register(&cloud, &RegisterOptions { accelerate, fine_iters, ..refine_only }).unwrap().latent
+        };
+        let converged = fit(false, 400);
+        let gap = |l: Vec<f64>| l.iter().zip(&converged).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
+        plain_gap += gap(fit(false, 40));
+        fast_gap += gap(fit(true, 40));
+    }
+    eprintln!("latent distance to the converged fit after 40 iterations: plain {plain_gap:.3}, SQUAREM {fast_gap:.3}");
+    assert!(fast_gap < 0.5 * plain_gap, "plain {plain_gap:.3}, SQUAREM {fast_gap:.3}");
+}
