@@ -285,14 +285,28 @@ impl Shared {
         let hdr = self.response_header(&h, &status, received, compute_ns);
         // Counted before the client can see the answer (a Stats call right after it includes it).
         let slow = lock(&self.stats).record(method, status.code, hdr.server_ns, compute_ns, self.slow_ns);
-        let sent = loan.and_then(|mut r| {
-            *r.user_header_mut() = hdr;
-            let r = r.write_payload(body.copied().unwrap_or_default());
-            r.send().map_err(|e| format!("{e:?}"))
-        });
-        if let Err(e) = sent {
-            // The client is gone or its buffer is full: nothing more can be done for it.
-            tracing::debug!("{}: could not send the response to request {}: {e}", method.name(), h.request_id);
+        match loan {
+            Ok(mut r) => {
+                *r.user_header_mut() = hdr;
+                let r = r.write_payload(body.copied().unwrap_or_default());
+                if let Err(e) = r.send() {
+                    // The client is gone or its buffer is full: nothing more can be done for it.
+                    tracing::debug!(
+                        "{}: could not send the response to request {}: {e:?}",
+                        method.name(),
+                        h.request_id
+                    );
+                }
+            }
+            // The daemon's own response memory ran out: the client waits out its
+            // deadline, so this is the operator's to see (cloud requests loan
+            // theirs at admission and are answered RESOURCE_EXHAUSTED instead).
+            Err(e) => tracing::warn!(
+                "{}: no shared memory for the response to request {} (status {:?} not sent): {e}",
+                method.name(),
+                h.request_id,
+                status.code
+            ),
         }
         if h.notify_token != 0 {
             lock(&self.notifiers).notify(h.notify_token);
