@@ -1191,7 +1191,7 @@ fn em(
     iters: usize,
     norm: &Normalization,
 ) -> Fit {
-    let mut run = EmRun::new(model, view, x, prior, opts, norm);
+    let mut run = EmRun::new(FitInputs { model, view, x, prior, opts, norm });
     let mut st = EmState { pose, latent, sigma2: 0.0 };
     run.load(&st);
     st.sigma2 = sigma2_init.unwrap_or_else(|| initial_sigma2(x, &run.y_world));
@@ -1259,14 +1259,20 @@ struct EmState {
     sigma2: f64,
 }
 
-/// One fit's fixed inputs and reused buffers.
-struct EmRun<'a> {
+/// What one fit is of: the model, the view, the data and the priors.
+#[derive(Clone, Copy)]
+struct FitInputs<'a> {
     model: &'a LinearModel,
     view: View<'a>,
     x: &'a [P3],
     prior: Option<(&'a [f64], &'a LatentStep)>,
     opts: &'a RegisterOptions,
     norm: &'a Normalization,
+}
+
+/// One fit's inputs and reused buffers.
+struct EmRun<'a> {
+    inputs: FitInputs<'a>,
     estep: EStep,
     post: Posteriors,
     /// The model at the state's latent, in its own frame and posed.
@@ -1279,34 +1285,23 @@ struct EmRun<'a> {
 }
 
 impl<'a> EmRun<'a> {
-    fn new(
-        model: &'a LinearModel,
-        view: View<'a>,
-        x: &'a [P3],
-        prior: Option<(&'a [f64], &'a LatentStep)>,
-        opts: &'a RegisterOptions,
-        norm: &'a Normalization,
-    ) -> Self {
+    fn new(inputs: FitInputs<'a>) -> Self {
+        let m = inputs.model.len();
         Self {
-            model,
-            view,
-            x,
-            prior,
-            opts,
-            norm,
-            estep: new_estep(x),
+            estep: new_estep(inputs.x),
             post: Posteriors::default(),
+            y_model: Vec::with_capacity(m),
+            y_world: Vec::with_capacity(m),
             weights: Vec::new(),
-            y_model: Vec::with_capacity(model.len()),
-            y_world: Vec::with_capacity(model.len()),
             has_weights: false,
             weighed: false,
+            inputs,
         }
     }
 
     /// Evaluate the model at a state set from outside.
     fn load(&mut self, st: &EmState) {
-        self.model.evaluate_into(&st.latent, &mut self.y_model);
+        self.inputs.model.evaluate_into(&st.latent, &mut self.y_model);
         self.y_world.clear();
         self.y_world.extend(self.y_model.iter().map(|y| st.pose.apply(y)));
     }
@@ -1316,10 +1311,10 @@ impl<'a> EmRun<'a> {
     /// point is explained. The view's weights are those of the last step
     /// unless `refresh_weights`.
     fn step(&mut self, st: &mut EmState, refresh_weights: bool) -> Option<f64> {
-        let (x, opts, norm) = (self.x, self.opts, self.norm);
+        let (x, opts, norm) = (self.inputs.x, self.inputs.opts, self.inputs.norm);
         let sigma2 = st.sigma2;
         if refresh_weights || !self.weighed {
-            self.has_weights = self.view.weights(&st.pose, &self.y_world, sigma2, &mut self.weights).is_some();
+            self.has_weights = self.inputs.view.weights(&st.pose, &self.y_world, sigma2, &mut self.weights).is_some();
             self.weighed = true;
         }
         let w = self.has_weights.then_some(self.weights.as_slice());
@@ -1345,12 +1340,12 @@ impl<'a> EmRun<'a> {
         // Translation re-derived for a clamped scale: t = μx − s R μy.
         pose.t = fitted_translation(x, &self.y_model, post, pose);
         // Latent (MAP): (Σ P1 BᵀB + σ²/s² Λ⁻¹) ℓ = Σ Bᵀ(PX̃ − P1 ȳ).
-        if let Some((var, step)) = self.prior {
+        if let Some((var, step)) = self.inputs.prior {
             if !st.latent.is_empty() {
                 let reg = sigma2 / (pose.s * pose.s) * opts.latent_prior_weight;
                 if let Some(sol) = step.solve(post, pose, reg, var) {
                     st.latent.copy_from_slice(&sol);
-                    self.model.evaluate_into(&st.latent, &mut self.y_model);
+                    self.inputs.model.evaluate_into(&st.latent, &mut self.y_model);
                 }
             }
         }
@@ -1372,7 +1367,10 @@ impl<'a> EmRun<'a> {
     }
 
     fn scale_range(&self) -> (f64, f64) {
-        (self.opts.scale_range.0 * self.norm.scale, self.opts.scale_range.1 * self.norm.scale)
+        (
+            self.inputs.opts.scale_range.0 * self.inputs.norm.scale,
+            self.inputs.opts.scale_range.1 * self.inputs.norm.scale,
+        )
     }
 
     /// SQUAREM's jump from three successive states (s1 = F(s0), s2 = F(s1)):
@@ -1385,7 +1383,7 @@ impl<'a> EmRun<'a> {
     fn extrapolate(&self, s0: &EmState, s1: &EmState, s2: &EmState, max_step: f64) -> Option<(EmState, f64)> {
         let r0 = s0.pose.r;
         let unit = s0.pose.s.max(1e-12);
-        let std: Vec<f64> = match self.prior {
+        let std: Vec<f64> = match self.inputs.prior {
             Some((var, _)) => var.iter().map(|v| v.max(1e-12).sqrt()).collect(),
             None => vec![1.0; s0.latent.len()],
         };
