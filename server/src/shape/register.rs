@@ -925,13 +925,17 @@ impl YawSweep<'_> {
                         pose.t += Vector3::from(shift);
                         y_world.iter_mut().zip(&y_model).for_each(|(w, y)| *w = pose.apply(y));
                     }
-                    let w = view.weights(&pose, &y_world, lead.sigma2, &mut weights);
-                    // Scored by the likelihood alone (the posterior sums are not needed).
-                    let nll = estep.neg_log_likelihood(&y_world, w, lead.sigma2, opts.outlier_weight);
-                    let violation = self.free_space.map_or(0.0, |fs| {
-                        fs.violation_fraction(&y_world, normals.iter().map(|n| pose.r * Vector3::from(*n)))
-                    });
-                    nll / self.x.len().max(1) as f64 + FREE_SPACE_PENALTY * violation
+                    let (nll_pt, violation) = score_posed(
+                        &mut estep,
+                        &view,
+                        &pose,
+                        &y_world,
+                        lead.sigma2,
+                        self.free_space,
+                        opts,
+                        &mut weights,
+                    );
+                    nll_pt + FREE_SPACE_PENALTY * violation
                 })
                 .collect()
         };
@@ -996,14 +1000,32 @@ fn dense_score(
 ) -> (f64, f64) {
     let y: Vec<P3> = level.model.evaluate(&fit.latent).iter().map(|y| fit.pose.apply(y)).collect();
     let view = View { normals: &level.normals, viewpoint, occlusion: None };
-    let mut weights = Vec::new();
-    let w = view.weights(&fit.pose, &y, fit.sigma2, &mut weights);
     let mut estep = new_estep(x);
     estep.truncate_below = 0.0;
-    let nll = estep.neg_log_likelihood(&y, w, fit.sigma2, opts.outlier_weight);
+    score_posed(&mut estep, &view, &fit.pose, &y, fit.sigma2, free_space, opts, &mut Vec::new())
+}
+
+/// A posed model's score against the view in `estep`: its negative
+/// log-likelihood per observed point (the likelihood alone: the posterior
+/// sums are not needed) and the share of its camera-facing points the view
+/// contradicts. `view.normals` are the model points' canonical normals;
+/// `weights` is scratch.
+#[allow(clippy::too_many_arguments)]
+fn score_posed(
+    estep: &mut EStep,
+    view: &View,
+    pose: &Pose,
+    y_world: &[P3],
+    sigma2: f64,
+    free_space: Option<&FreeSpace>,
+    opts: &RegisterOptions,
+    weights: &mut Vec<f64>,
+) -> (f64, f64) {
+    let w = view.weights(pose, y_world, sigma2, weights);
+    let nll = estep.neg_log_likelihood(y_world, w, sigma2, opts.outlier_weight);
     let violation = free_space
-        .map_or(0.0, |fs| fs.violation_fraction(&y, level.normals.iter().map(|n| fit.pose.r * Vector3::from(*n))));
-    (nll / x.len().max(1) as f64, violation)
+        .map_or(0.0, |fs| fs.violation_fraction(y_world, view.normals.iter().map(|n| pose.r * Vector3::from(*n))));
+    (nll / estep.data().len().max(1) as f64, violation)
 }
 
 /// The line a yaw sweep turns the lead about: the lead's canonical axis
