@@ -9,6 +9,7 @@
 //! outside the tool's silhouette, or in front of a surface seen behind them.
 
 use super::estep::P3;
+use super::grid::floor;
 use nalgebra::Vector3;
 
 pub struct FreeSpace {
@@ -87,8 +88,8 @@ impl FreeSpace {
     }
 
     fn cell(&self, q: [f64; 2]) -> Option<usize> {
-        let i = ((q[0] - self.origin_uv[0]) * self.inv_cell).floor();
-        let j = ((q[1] - self.origin_uv[1]) * self.inv_cell).floor();
+        let i = floor((q[0] - self.origin_uv[0]) * self.inv_cell);
+        let j = floor((q[1] - self.origin_uv[1]) * self.inv_cell);
         if i < 0.0 || j < 0.0 || i >= self.dims[0] as f64 || j >= self.dims[1] as f64 {
             return None;
         }
