@@ -237,6 +237,24 @@ impl RadiusGrid {
     }
 }
 
+/// `v.floor()` without the call: the baseline x86-64 target has no rounding
+/// instruction (SSE4.1's `roundsd`), so `f64::floor` is a call into a
+/// software routine, and the grid and range-image cell lookups were 2 % of a
+/// registration without its camera position (perf, `bench_register mug`).
+/// Exact for |v| < 2⁶³; NaN gives NaN.
+#[inline(always)]
+pub(crate) fn floor(v: f64) -> f64 {
+    if !(v.abs() < 9.2e18) {
+        return v;
+    }
+    let t = v as i64 as f64;
+    if t > v {
+        t - 1.0
+    } else {
+        t
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -293,23 +311,5 @@ mod tests {
                 }
             }
         }
-    }
-}
-
-/// `v.floor()` without the call: the baseline x86-64 target has no rounding
-/// instruction (SSE4.1's `roundsd`), so `f64::floor` is a call into a
-/// software routine, and the grid and range-image cell lookups were 2 % of a
-/// registration without its camera position (perf, `bench_register mug`).
-/// Exact for |v| < 2⁶³; NaN gives NaN.
-#[inline(always)]
-pub(crate) fn floor(v: f64) -> f64 {
-    if !(v.abs() < 9.2e18) {
-        return v;
-    }
-    let t = v as i64 as f64;
-    if t > v {
-        t - 1.0
-    } else {
-        t
     }
 }
