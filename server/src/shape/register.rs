@@ -1261,9 +1261,10 @@ fn em(
         } else {
             // Worse than plain EM's last: back to its point, and shorter jumps.
             max_step = (max_step / 2.0).max(1.0);
+            // (s2's own likelihood is unknown until its E-step; nll1 bounds it.)
             st = s2;
             run.load(&st);
-            prev = nll1;
+            (prev, nll) = (nll1, nll1);
         }
     }
     Fit { pose: st.pose, latent: st.latent, sigma2: st.sigma2, nll, iterations: it }
