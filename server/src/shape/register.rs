@@ -1356,7 +1356,8 @@ impl<'a> EmRun<'a> {
             let std = opts.scale_prior_std.unwrap_or(LOOSE_SCALE_PRIOR_STD);
             let (s0, tau) = (norm.scale, std.max(1e-6) * norm.scale);
             let s_map = (step.trace / sigma2 + s0 / (tau * tau)) / (step.yy / sigma2 + 1.0 / (tau * tau));
-            s_map.clamp(self.scale_range().0, self.scale_range().1)
+            let (smin, smax) = self.scale_range();
+            s_map.clamp(smin, smax)
         } else {
             norm.scale
         };
