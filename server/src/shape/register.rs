@@ -1304,7 +1304,6 @@ struct EmRun<'a> {
     /// The view's mixing weights (`View::weights`) of the last refresh, and whether there are any.
     weights: Vec<f64>,
     has_weights: bool,
-    weighed: bool,
 }
 
 impl<'a> EmRun<'a> {
@@ -1317,7 +1316,6 @@ impl<'a> EmRun<'a> {
             y_world: Vec::with_capacity(m),
             weights: Vec::new(),
             has_weights: false,
-            weighed: false,
             inputs,
         }
     }
@@ -1332,13 +1330,12 @@ impl<'a> EmRun<'a> {
     /// E-step at `st` (whose model `y_model`/`y_world` hold), then the M-step
     /// into `st`. The E-step's negative log-likelihood, or None when no data
     /// point is explained. The view's weights are those of the last step
-    /// unless `refresh_weights`.
+    /// unless `refresh_weights` (`em` refreshes them at its first).
     fn step(&mut self, st: &mut EmState, refresh_weights: bool) -> Option<f64> {
         let (x, opts, norm) = (self.inputs.x, self.inputs.opts, self.inputs.norm);
         let sigma2 = st.sigma2;
-        if refresh_weights || !self.weighed {
+        if refresh_weights {
             self.has_weights = self.inputs.view.weights(&st.pose, &self.y_world, sigma2, &mut self.weights).is_some();
-            self.weighed = true;
         }
         let w = self.has_weights.then_some(self.weights.as_slice());
         self.estep.run_weighted(&self.y_world, w, sigma2, opts.outlier_weight, &mut self.post);
