@@ -104,14 +104,15 @@ impl Default for BuildOptions {
             centres: 400,
             instance_points: 1600,
             surface_points: 3000,
-            // 0.9999 keeps every mode 10 training instances give (9; 0.995
-            // kept 7 / 7 / 5 for mug / drill / hammer). The small modes carry
-            // what tells tools apart at their keypoints: whole test surfaces
-            // (eval transfer --full-surface, seed 7) hammer keypoint median
-            // 2.27 -> 1.56 mm, drill 1.89 -> 1.81, mug 1.56 either way; the
-            // latent's prior keeps them small where a view says little.
+            // 0.9999 keeps every mode 10 training instances give up to the
+            // 8 the wire carries (`graspd_proto::MAX_LATENT`; 0.995 kept 7 /
+            // 7 / 5 for mug / drill / hammer). The small modes carry what
+            // tells tools apart at their keypoints: whole test surfaces (eval
+            // transfer --full-surface, seed 7, all 9 modes) hammer keypoint
+            // median 2.27 -> 1.56 mm, drill 1.89 -> 1.81, mug 1.56 either
+            // way; the latent's prior keeps them small where a view says little.
             explained: 0.9999,
-            max_modes: 12,
+            max_modes: graspd_proto::MAX_LATENT,
             prealign: false,
             // λ = 20 (was 3): the softer fields folded 7 of 10 hammers (handles
             // mirrored across their own plane) and squeezed mug walls flat.
