@@ -62,9 +62,9 @@ pub struct RegisterOptions {
     /// Weight of the latent's Gaussian prior relative to the textbook MAP.
     /// Neighbouring points of one depth view are not independent evidence
     /// (noise and missing surface are correlated), so the data term overstates
-    /// its certainty. 2 since the refine re-anneals (`refine_shape_sigma2`)
-    /// and the spaces keep their small modes: measured with both, eval
-    /// transfer --views 12, seed 7, test keypoint median / p90, weight 10 /
+    /// its certainty. 2 since the spaces keep their small modes: measured
+    /// with all 9 (before the refine re-annealed), eval transfer --views
+    /// 12, seed 7, test keypoint median / p90, weight 10 /
     /// 4 / 2 / 1: drill 2.39 / 5.31, 2.30 / 5.30, 2.18 / 5.07, 2.08 / 4.74
     /// mm; hammer 2.47 / 4.88, 2.31 / 4.42, 2.09 / 4.07, 2.00 / 4.48; mug
     /// 2.81 / 10.4, 2.57 / 14.3, 2.40 / 11.8, 2.33 / 14.7 (the mug's p90
