@@ -565,7 +565,7 @@ fn a_long_handle_in_view_is_fitted_to_its_end() {
     let reg = hammer_registrar();
     let family = tools::family(Category::Hammer).unwrap();
     let train: Vec<_> = family.iter().filter(|i| i.split == Split::Train).collect();
-    // The training hammer with the largest first latent (the longest handle).
+    // The training hammer furthest along the first mode (the handle's length: the longest handle).
     let (inst, _) =
         train.iter().zip(&reg.space.train_latents).max_by(|a, b| a.1[0].abs().total_cmp(&b.1[0].abs())).unwrap();
     let end = inst.keypoints.iter().position(|k| k.name == "handle_end").unwrap();
@@ -586,6 +586,6 @@ fn a_long_handle_in_view_is_fitted_to_its_end() {
         e.sort_by(f64::total_cmp);
         e[e.len() / 2]
     });
-    // Here: 4.4 mm (1.2-9.7 over the six views); 28.6 mm without re-annealing (15.6-40.6).
+    // Here: 4.0 mm; 29.7 mm without re-annealing (with 9 modes 4.4 and 28.6).
     assert!(annealed < 8.0, "handle end {annealed:.1} mm off (median; {settled:.1} mm without re-annealing)");
 }
