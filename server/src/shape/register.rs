@@ -349,18 +349,17 @@ struct LatentLevel {
 }
 
 /// Per-coordinate variance of the training shapes' model points about the
-/// mean shape's (normalised units²).
+/// mean shape's (`model.base`, the latent at zero; normalised units²).
 fn shape_spread2(model: &LinearModel, latents: &[Vec<f64>]) -> f64 {
     if model.basis.is_empty() || latents.is_empty() {
         return 0.0;
     }
-    let mean = model.evaluate(&vec![0.0; latents[0].len()]);
     let mut sum = 0.0;
     for l in latents {
         let y = model.evaluate(l);
-        sum += y.iter().zip(&mean).map(|(a, b)| super::estep::dist2(a, b)).sum::<f64>();
+        sum += y.iter().zip(&model.base).map(|(a, b)| super::estep::dist2(a, b)).sum::<f64>();
     }
-    sum / (3.0 * (latents.len() * mean.len()) as f64)
+    sum / (3.0 * (latents.len() * model.len()) as f64)
 }
 
 /// Model points of the refine stage and of the polish (farthest-point
