@@ -21,3 +21,30 @@ pub fn clear_upper_state() {
         unsafe { std::arch::x86_64::_mm256_zeroupper() }
     }
 }
+
+/// The SSE/AVX unit's sticky flags raised while `f` runs on this thread:
+/// denormal operand (0x02) and underflow (0x10) among them. For tests that
+/// hold a computation out of f32's and f64's subnormal range, where Intel
+/// cores take a microcode assist per result (AMD's do not, but raise the
+/// same flags, so the tests fail on either).
+#[cfg(all(test, target_arch = "x86_64"))]
+pub(crate) fn sticky_fp_flags<R>(f: impl FnOnce() -> R) -> (R, u32) {
+    const FLAGS: u32 = 0x3F;
+    let mut csr = 0u32;
+    // SAFETY: stmxcsr stores MXCSR's 32 bits into `csr`; ldmxcsr loads back
+    // the value read with only its sticky status flags cleared (rounding and
+    // exception masks unchanged).
+    unsafe {
+        std::arch::asm!("stmxcsr [{}]", in(reg) &mut csr, options(nostack));
+        csr &= !FLAGS;
+        std::arch::asm!("ldmxcsr [{}]", in(reg) &csr, options(nostack));
+    }
+    let r = f();
+    // SAFETY: as above.
+    unsafe { std::arch::asm!("stmxcsr [{}]", in(reg) &mut csr, options(nostack)) };
+    (r, csr & FLAGS)
+}
+
+/// MXCSR's denormal-operand and underflow flags.
+#[cfg(all(test, target_arch = "x86_64"))]
+pub(crate) const SUBNORMAL_FLAGS: u32 = 0x02 | 0x10;
