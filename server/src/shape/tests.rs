@@ -560,8 +560,12 @@ fn squarem_brings_the_latent_fit_nearer_convergence_in_the_same_iterations() {
     // The refine's latent drifts a little further each EM iteration; SQUAREM
     // jumps along that path. Against a long plain fit (400 iterations, the
     // latent EM converges to), 40 accelerated iterations should end much
-    // nearer than 40 plain ones (measured: 0.16 against 0.34, summed over
-    // the three views).
+    // nearer than 40 plain ones. Measured, summed over the three views:
+    // 0.76 against 1.87 before the fine stages counted grazing model points
+    // hidden (`GRAZING_COS`), 1.34 against 2.18 since: points crossing the
+    // grazing angle flip their weight as the pose moves, which moves the
+    // long fit's end too (the fits' iterations in `bench_register` did not
+    // change: mug 76.0 → 74.9 a fit, drill 48.3 → 49.2, hammer 50.7 → 47.0).
     let reg = mug_registrar();
     let test = tools::family(Category::Mug).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap();
     let refine_only = RegisterOptions { polish_points: 0, tol: 1e-12, ..RegisterOptions::default() };
@@ -577,7 +581,7 @@ fn squarem_brings_the_latent_fit_nearer_convergence_in_the_same_iterations() {
         fast_gap += gap(fit(true, 40));
     }
     eprintln!("latent distance to the converged fit after 40 iterations: plain {plain_gap:.3}, SQUAREM {fast_gap:.3}");
-    assert!(fast_gap < 0.5 * plain_gap, "plain {plain_gap:.3}, SQUAREM {fast_gap:.3}");
+    assert!(fast_gap < 0.75 * plain_gap, "plain {plain_gap:.3}, SQUAREM {fast_gap:.3}");
 }
 
 /// A hammer whose handle is much longer than the mean shape's (the family's
