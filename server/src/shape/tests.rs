@@ -139,8 +139,7 @@ fn a_registration_computes_no_subnormal_numbers() {
     for (k, yaw) in [0.4f64, 2.0].iter().enumerate() {
         let pose = on_table(*yaw);
         let (cloud, cam) = capture(&test.mesh, &pose, pose * Point3::new(0.0, 0.0, 0.05), k * 3 + 1, 3);
-        let t = cam.translation.vector;
-        for viewpoint in [None, Some([t.x, t.y, t.z])] {
+        for viewpoint in [None, Some(cam.translation.vector.into())] {
             let opts = RegisterOptions { viewpoint, ..RegisterOptions::default() };
             let (r, flags) = sticky_fp_flags(|| registrar.register(&cloud, &opts));
             assert!(r.is_ok());
