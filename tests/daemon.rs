@@ -207,6 +207,10 @@ fn assert_same_registration(got: &graspd_client::Registration, expected: &serde_
     assert_eq!(got.fit.confident, expected["fit"]["confident"].as_bool().unwrap());
     assert_eq!(got.fit.ambiguous_pose, expected["fit"]["ambiguous_pose"].as_bool().unwrap());
     assert_eq!(u64::from(got.fit.stray_points), expected["fit"]["stray_points"].as_u64().unwrap());
+    // No camera position in these requests: the daemon's estimate is the CLI's (null when unsettled).
+    let estimated = expected["estimated_viewpoint"].as_array().map(|_| floats(&expected["estimated_viewpoint"]));
+    assert_eq!(got.viewpoint.estimated().map(|p| p.to_vec()), estimated, "estimated viewpoint");
+    assert!(!matches!(got.viewpoint, graspd_client::Viewpoint::Given { .. }));
 }
 
 #[test]
@@ -276,6 +280,7 @@ fn concurrent_clients_get_the_same_answers_as_the_cli() {
         assert_eq!(v["keypoints"], f.views[0].2["keypoints"]);
         assert_eq!(v["pose"], f.views[0].2["pose"]);
         assert_eq!(v["latent"], f.views[0].2["latent"]);
+        assert_eq!(v["estimated_viewpoint"], f.views[0].2["estimated_viewpoint"]);
     }
 }
 
@@ -402,6 +407,22 @@ fn bad_inputs_get_their_status_and_the_daemon_keeps_serving() {
         assert_eq!(got, *want, "{what}: {msg}");
         assert!(!msg.is_empty(), "{what}: a status without a message");
     }
+    // A given camera position comes back as the one the fit used.
+    let camera = [0.05f32, -0.45, 0.4];
+    let (h, body) = c
+        .register_raw(
+            Cloud::Slice(&good),
+            |h| {
+                set_mug(h);
+                h.flags = proto::flags::VIEWPOINT;
+                h.viewpoint_in_cloud_m = camera
+            },
+            TIMEOUT,
+        )
+        .unwrap();
+    assert_eq!(StatusCode::from_u32(h.status), StatusCode::Ok, "{}", proto::text_lossy(&h.message));
+    assert_eq!(body.registration.viewpoint_source, proto::viewpoint_source::GIVEN);
+    assert_eq!(body.registration.viewpoint_cloud_m, camera.map(f64::from));
     // Grasp: its own checks (table, pre-grasp options), then the same answer as `graspd grasp`.
     for (what, edit) in [
         (
@@ -464,7 +485,7 @@ fn bad_inputs_get_their_status_and_the_daemon_keeps_serving() {
     assert_same_registration(&c.register("mug", &f.views[1].1, TIMEOUT).unwrap(), &f.views[1].2);
     let s = c.stats().unwrap();
     let reg = &s.methods[proto::Method::Register as usize];
-    assert_eq!(reg.requests as usize, cases.len() + 3);
+    assert_eq!(reg.requests as usize, cases.len() + 4);
     assert_eq!(reg.by_status[StatusCode::InvalidArgument as usize], 11);
     assert_eq!(reg.by_status[StatusCode::NotFound as usize], 1);
     assert_eq!(reg.by_status[StatusCode::DeadlineExceeded as usize], 1);

@@ -193,6 +193,30 @@ pub struct Registration {
     pub sigma2_m2: f64,
     pub fit: Fit,
     pub keypoints: Vec<NamedPoint>,
+    /// The camera position the fit used, in the cloud's frame, metres.
+    pub viewpoint: Viewpoint,
+}
+
+/// Where a registration's camera position came from.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[serde(tag = "source", rename_all = "snake_case")]
+pub enum Viewpoint {
+    /// None given, and the view did not settle one.
+    None,
+    /// The request's (`CloudOptions::viewpoint`).
+    Given { position: [f64; 3] },
+    /// Estimated by the daemon from the view.
+    Estimated { position: [f64; 3] },
+}
+
+impl Viewpoint {
+    /// The estimated position, if the daemon estimated one.
+    pub fn estimated(&self) -> Option<[f64; 3]> {
+        match *self {
+            Viewpoint::Estimated { position } => Some(position),
+            _ => None,
+        }
+    }
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -330,7 +354,8 @@ fn open_error(
         | E::VersionMismatch => Error::new(
             StatusCode::FailedPrecondition,
             format!(
-                "{name} speaks another protocol (this client: graspd.v1, protocol {}): {e:?}",
+                "{name} speaks another protocol (this client: graspd.{}, protocol {}): {e:?}",
+                proto::VERSION_SEGMENT,
                 proto::PROTOCOL_VERSION
             ),
         ),
@@ -948,6 +973,11 @@ fn registration(r: &proto::Registration, category: &str, frame: &str) -> Registr
             .iter()
             .map(|k| NamedPoint { name: proto::text_lossy(&k.name), position: k.position_cloud_m })
             .collect(),
+        viewpoint: match r.viewpoint_source {
+            proto::viewpoint_source::GIVEN => Viewpoint::Given { position: r.viewpoint_cloud_m },
+            proto::viewpoint_source::ESTIMATED => Viewpoint::Estimated { position: r.viewpoint_cloud_m },
+            _ => Viewpoint::None,
+        },
     }
 }
 

@@ -4,7 +4,7 @@
 //! Every type here is `#[repr(C)]`, holds only integers, floats and fixed
 //! arrays of them (any bit pattern is a valid value, all zeros is a valid
 //! value), has no implicit padding, and carries a stable iceoryx2 type name
-//! (`graspd.v1.*`) so that clients in other languages can open the same
+//! (`graspd.v2.*`) so that clients in other languages can open the same
 //! services. README.md in this crate is the reference for each field, unit
 //! and frame; the layout tests at the bottom pin sizes and offsets.
 //!
@@ -16,22 +16,27 @@
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Bumped whenever a message layout or a field's meaning changes. The type
-/// names carry the major version too (`graspd.v1.*`), so a client built
+/// names carry the major version too (`graspd.v2.*`), so a client built
 /// against another layout cannot even open the services.
-pub const PROTOCOL_VERSION: u32 = 1;
+///
+/// Version 2 (2026-12-03): `MAX_LATENT` 8 → 16 (a space keeps every mode its
+/// training tools give: 9 for the built-in families, worth 0.1 mm on the
+/// drill's keypoints), and `Registration` carries the camera position the
+/// fit used (`viewpoint_cloud_m`, `viewpoint_source`).
+pub const PROTOCOL_VERSION: u32 = 2;
 
-/// Service names are `<prefix>/v1/<method>`; the prefix is configurable so
+/// Service names are `<prefix>/v2/<method>`; the prefix is configurable so
 /// that several daemons (or parallel tests) can share one machine.
 pub const DEFAULT_PREFIX: &str = "graspd";
 /// The path segment of this protocol's major version.
-pub const VERSION_SEGMENT: &str = "v1";
+pub const VERSION_SEGMENT: &str = "v2";
 
 /// Fixed-size UTF-8 name: the bytes of the string, NUL padded. A name of
 /// exactly 32 bytes has no terminator.
 pub type Name = [u8; 32];
 
 pub const MAX_KEYPOINTS: usize = 8;
-pub const MAX_LATENT: usize = 8;
+pub const MAX_LATENT: usize = 16;
 pub const MAX_CATEGORIES: usize = 8;
 pub const MAX_JOINTS: usize = 16;
 pub const MAX_METHODS: usize = 8;
@@ -69,19 +74,19 @@ impl Method {
         }
     }
 
-    /// `<prefix>/v1/<method>`: the request-response service.
+    /// `<prefix>/v2/<method>`: the request-response service.
     pub fn service_name(self, prefix: &str) -> String {
         format!("{prefix}/{VERSION_SEGMENT}/{}", self.name())
     }
 
-    /// `<prefix>/v1/<method>/notify`: the event service a client notifies
+    /// `<prefix>/v2/<method>/notify`: the event service a client notifies
     /// after sending a request, so that an event-driven daemon wakes up.
     pub fn notify_service_name(self, prefix: &str) -> String {
         format!("{prefix}/{VERSION_SEGMENT}/{}/notify", self.name())
     }
 }
 
-/// `<prefix>/v1/reply/<token as 16 lower-case hex digits>`: the event service
+/// `<prefix>/v2/reply/<token as 16 lower-case hex digits>`: the event service
 /// a client creates (one listener: the client) and names in
 /// [`RequestHeader::notify_token`]; the daemon notifies it after each response.
 pub fn reply_service_name(prefix: &str, token: u64) -> String {
@@ -161,6 +166,17 @@ pub mod grasp_warning {
     pub const NO_TABLE_FRAME_NOT_Z_UP: u32 = 4;
 }
 
+/// Values of [`Registration::viewpoint_source`].
+pub mod viewpoint_source {
+    /// The fit used no camera position: none was given and the view did not
+    /// settle one (a flat tool seen from a wide cone, a whole-surface cloud).
+    pub const NONE: u32 = 0;
+    /// The request's `viewpoint_in_cloud_m` (flag VIEWPOINT).
+    pub const GIVEN: u32 = 1;
+    /// Estimated from the view.
+    pub const ESTIMATED: u32 = 2;
+}
+
 /// Values of [`HealthResponse::serving`].
 pub mod serving {
     pub const SERVING: u32 = 1;
@@ -221,7 +237,7 @@ unsafe impl Plain for NoPayload {}
 
 /// The request user header of every method (iceoryx2 "user header"), 136 bytes.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v1.RequestHeader")]
+#[type_name("graspd.v2.RequestHeader")]
 #[repr(C)]
 pub struct RequestHeader {
     /// Chosen by the client, echoed in the response.
@@ -271,7 +287,7 @@ pub mod flags {
 /// One point of a cloud: (x, y, z) in metres in the request's `cloud_frame`.
 /// Layout identical to `[f32; 3]` / `float[3]` (12 bytes, alignment 4).
 #[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
-#[type_name("graspd.v1.Point")]
+#[type_name("graspd.v2.Point")]
 #[repr(C)]
 pub struct Point(pub [f32; 3]);
 
@@ -286,7 +302,7 @@ impl Point {
 
 /// The request payload of methods without one (Health, ListCategories, Stats).
 #[derive(Clone, Copy, Debug, Default, ZeroCopySend)]
-#[type_name("graspd.v1.NoPayload")]
+#[type_name("graspd.v2.NoPayload")]
 #[repr(C)]
 pub struct NoPayload {
     pub reserved: u64,
@@ -294,7 +310,7 @@ pub struct NoPayload {
 
 /// The response user header of every method, 160 bytes.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v1.ResponseHeader")]
+#[type_name("graspd.v2.ResponseHeader")]
 #[repr(C)]
 pub struct ResponseHeader {
     /// The request's `request_id`.
@@ -315,7 +331,7 @@ pub struct ResponseHeader {
 
 /// Health response body.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v1.HealthResponse")]
+#[type_name("graspd.v2.HealthResponse")]
 #[repr(C)]
 pub struct HealthResponse {
     pub uptime_ns: u64,
@@ -343,7 +359,7 @@ pub struct HealthResponse {
 
 /// One category the daemon serves.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v1.CategoryInfo")]
+#[type_name("graspd.v2.CategoryInfo")]
 #[repr(C)]
 pub struct CategoryInfo {
     pub name: Name,
@@ -358,7 +374,7 @@ pub struct CategoryInfo {
 
 /// ListCategories response body.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v1.CategoriesResponse")]
+#[type_name("graspd.v2.CategoriesResponse")]
 #[repr(C)]
 pub struct CategoriesResponse {
     pub count: u32,
@@ -368,7 +384,7 @@ pub struct CategoriesResponse {
 
 /// A named point of a registration (a transferred keypoint).
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v1.Keypoint")]
+#[type_name("graspd.v2.Keypoint")]
 #[repr(C)]
 pub struct Keypoint {
     pub name: Name,
@@ -378,7 +394,7 @@ pub struct Keypoint {
 
 /// A registration of a category's shape space to a cloud.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v1.Registration")]
+#[type_name("graspd.v2.Registration")]
 #[repr(C)]
 pub struct Registration {
     /// Latent shape coordinates (first `latent_dim` used; the rest zero).
@@ -396,6 +412,10 @@ pub struct Registration {
     /// RMS distance of the inliers to the fitted shape, metres.
     pub residual_m: f64,
     pub inlier_threshold_m: f64,
+    /// The camera position the fit used, in the cloud's frame, metres: the
+    /// request's `viewpoint_in_cloud_m`, or the one the daemon estimated from
+    /// the view; zero when `viewpoint_source` is NONE.
+    pub viewpoint_cloud_m: [f64; 3],
     pub latent_dim: u32,
     pub keypoint_count: u32,
     /// 1 when the fit explains the cloud (inlier fraction ≥ 0.7), else 0.
@@ -406,16 +426,18 @@ pub struct Registration {
     /// (a mug whose handle is hidden): the orientation is not determined by this view.
     pub ambiguous_pose: u32,
     /// Points set aside as stray before the fit (isolated points: flying
-    /// pixels, speckle, segmentation leaks); of `points`. (Was `reserved`,
-    /// always 0: same layout, so protocol version 1 is unchanged.)
+    /// pixels, speckle, segmentation leaks); of `points`.
     pub stray_points: u32,
+    /// One of [`viewpoint_source`].
+    pub viewpoint_source: u32,
+    pub reserved: u32,
     /// Canonical keypoints moved through the fitted deformation and pose.
     pub keypoints: [Keypoint; MAX_KEYPOINTS],
 }
 
 /// Register response body.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v1.RegisterResponse")]
+#[type_name("graspd.v2.RegisterResponse")]
 #[repr(C)]
 pub struct RegisterResponse {
     pub registration: Registration,
@@ -423,7 +445,7 @@ pub struct RegisterResponse {
 
 /// A hand configuration: wrist (palm root link) pose and joint positions.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v1.HandConfiguration")]
+#[type_name("graspd.v2.HandConfiguration")]
 #[repr(C)]
 pub struct HandConfiguration {
     /// Rotation of the hand's root (palm) frame into the cloud's frame, (x, y, z, w).
@@ -438,7 +460,7 @@ pub struct HandConfiguration {
 
 /// Grasp response body: registration, grasp and pre-grasp in one round trip.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v1.GraspResponse")]
+#[type_name("graspd.v2.GraspResponse")]
 #[repr(C)]
 pub struct GraspResponse {
     pub registration: Registration,
@@ -468,7 +490,7 @@ pub struct GraspResponse {
 
 /// Counters and latencies of one method.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v1.MethodStats")]
+#[type_name("graspd.v2.MethodStats")]
 #[repr(C)]
 pub struct MethodStats {
     pub name: Name,
@@ -494,7 +516,7 @@ pub struct MethodStats {
 
 /// Stats response body.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v1.StatsResponse")]
+#[type_name("graspd.v2.StatsResponse")]
 #[repr(C)]
 pub struct StatsResponse {
     pub uptime_ns: u64,
@@ -647,14 +669,17 @@ mod tests {
         assert_eq!(size_of::<CategoryInfo>(), 32 + 8 + 256 + 384);
         assert_eq!(size_of::<CategoriesResponse>(), 8 + 8 * 680);
         assert_eq!(size_of::<Keypoint>(), 56);
-        assert_eq!(offset_of!(Registration, latent_dim), 160);
-        assert_eq!(offset_of!(Registration, keypoints), 184);
-        assert_eq!(size_of::<Registration>(), 184 + 8 * 56);
+        assert_eq!(offset_of!(Registration, rotation_cloud_from_canonical_xyzw), 128);
+        assert_eq!(offset_of!(Registration, viewpoint_cloud_m), 224);
+        assert_eq!(offset_of!(Registration, latent_dim), 248);
+        assert_eq!(offset_of!(Registration, viewpoint_source), 272);
+        assert_eq!(offset_of!(Registration, keypoints), 280);
+        assert_eq!(size_of::<Registration>(), 280 + 8 * 56);
         assert_eq!(size_of::<HandConfiguration>(), 312);
-        assert_eq!(offset_of!(GraspResponse, grasp), 632);
-        assert_eq!(offset_of!(GraspResponse, actuated_names), 632 + 624);
-        assert_eq!(offset_of!(GraspResponse, task_space_distance_m), 632 + 624 + 1024);
-        assert_eq!(size_of::<GraspResponse>(), 632 + 624 + 1024 + 48 + 24);
+        assert_eq!(offset_of!(GraspResponse, grasp), 728);
+        assert_eq!(offset_of!(GraspResponse, actuated_names), 728 + 624);
+        assert_eq!(offset_of!(GraspResponse, task_space_distance_m), 728 + 624 + 1024);
+        assert_eq!(size_of::<GraspResponse>(), 728 + 624 + 1024 + 48 + 24);
         assert_eq!(size_of::<MethodStats>(), 32 + 8 + 128 + 8 + 48 + 8);
         assert_eq!(size_of::<StatsResponse>(), 32 + 8 * 232);
     }
@@ -710,7 +735,7 @@ mod tests {
         assert_eq!(StatusCode::Unavailable as u32, 14);
         assert_eq!(StatusCode::from_u32(9), StatusCode::FailedPrecondition);
         assert_eq!(StatusCode::from_u32(12345), StatusCode::Internal);
-        assert_eq!(Method::Register.service_name("graspd"), "graspd/v1/register");
-        assert_eq!(reply_service_name("p", 255), "p/v1/reply/00000000000000ff");
+        assert_eq!(Method::Register.service_name("graspd"), "graspd/v2/register");
+        assert_eq!(reply_service_name("p", 255), "p/v2/reply/00000000000000ff");
     }
 }

@@ -431,6 +431,7 @@ mod tests {
                     stray_points: 0,
                 },
                 keypoints: Vec::new(),
+                viewpoint: graspd_client::Viewpoint::None,
             },
             grasp: wire_hand(hand, grasp, cloud_from_tool),
             pregrasp: wire_hand(hand, pre, cloud_from_tool),

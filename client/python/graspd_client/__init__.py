@@ -125,6 +125,9 @@ def _registration(r, cloud_frame):
         "keypoints": keypoints,
         "cloud_frame": cloud_frame,
         "points": r.points,
+        # As `graspd register`: the camera position assumed when none was given (None: none used).
+        "estimated_viewpoint": (list(r.viewpoint_cloud_m)
+                                if r.viewpoint_source == proto.VIEWPOINT_ESTIMATED else None),
     }
 
 

@@ -1,4 +1,4 @@
-"""The graspd.v1 wire types as ctypes structures, written from proto/README.md.
+"""The graspd.v2 wire types as ctypes structures, written from proto/README.md.
 
 Each class mirrors one table of that file byte for byte (sizes and offsets
 are checked by ``check_layouts``) and names itself to iceoryx2 with the
@@ -8,12 +8,12 @@ these types. Little-endian, native alignment, explicit ``reserved`` fields.
 
 import ctypes
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 DEFAULT_PREFIX = "graspd"
-VERSION_SEGMENT = "v1"
+VERSION_SEGMENT = "v2"
 
 MAX_KEYPOINTS = 8
-MAX_LATENT = 8
+MAX_LATENT = 16
 MAX_CATEGORIES = 8
 MAX_JOINTS = 16
 MAX_METHODS = 8
@@ -26,6 +26,10 @@ FLAG_VIEWPOINT = 1
 TABLE_AUTO = 0
 TABLE_NONE = 1
 TABLE_GIVEN = 2
+
+VIEWPOINT_NONE = 0
+VIEWPOINT_GIVEN = 1
+VIEWPOINT_ESTIMATED = 2
 
 WARNING_REGISTRATION_NOT_CONFIDENT = 1
 WARNING_PREGRASP_IN_COLLISION = 2
@@ -44,7 +48,7 @@ def _named(type_name):
     return wrap
 
 
-@_named("graspd.v1.RequestHeader")
+@_named("graspd.v2.RequestHeader")
 class RequestHeader(ctypes.Structure):
     _fields_ = [
         ("request_id", ctypes.c_uint64),
@@ -64,17 +68,17 @@ class RequestHeader(ctypes.Structure):
     ]
 
 
-@_named("graspd.v1.Point")
+@_named("graspd.v2.Point")
 class Point(ctypes.Structure):
     _fields_ = [("x", ctypes.c_float), ("y", ctypes.c_float), ("z", ctypes.c_float)]
 
 
-@_named("graspd.v1.NoPayload")
+@_named("graspd.v2.NoPayload")
 class NoPayload(ctypes.Structure):
     _fields_ = [("reserved", ctypes.c_uint64)]
 
 
-@_named("graspd.v1.ResponseHeader")
+@_named("graspd.v2.ResponseHeader")
 class ResponseHeader(ctypes.Structure):
     _fields_ = [
         ("request_id", ctypes.c_uint64),
@@ -86,7 +90,7 @@ class ResponseHeader(ctypes.Structure):
     ]
 
 
-@_named("graspd.v1.HealthResponse")
+@_named("graspd.v2.HealthResponse")
 class HealthResponse(ctypes.Structure):
     _fields_ = [
         ("uptime_ns", ctypes.c_uint64),
@@ -115,7 +119,7 @@ class CategoryInfo(ctypes.Structure):
     ]
 
 
-@_named("graspd.v1.CategoriesResponse")
+@_named("graspd.v2.CategoriesResponse")
 class CategoriesResponse(ctypes.Structure):
     _fields_ = [
         ("count", ctypes.c_uint32),
@@ -128,7 +132,7 @@ class Keypoint(ctypes.Structure):
     _fields_ = [("name", Name), ("position_cloud_m", ctypes.c_double * 3)]
 
 
-@_named("graspd.v1.RegisterResponse")
+@_named("graspd.v2.RegisterResponse")
 class Registration(ctypes.Structure):
     _fields_ = [
         ("latent", ctypes.c_double * MAX_LATENT),
@@ -139,12 +143,15 @@ class Registration(ctypes.Structure):
         ("inlier_fraction", ctypes.c_double),
         ("residual_m", ctypes.c_double),
         ("inlier_threshold_m", ctypes.c_double),
+        ("viewpoint_cloud_m", ctypes.c_double * 3),
         ("latent_dim", ctypes.c_uint32),
         ("keypoint_count", ctypes.c_uint32),
         ("confident", ctypes.c_uint32),
         ("points", ctypes.c_uint32),
         ("ambiguous_pose", ctypes.c_uint32),
         ("stray_points", ctypes.c_uint32),
+        ("viewpoint_source", ctypes.c_uint32),
+        ("reserved", ctypes.c_uint32),
         ("keypoints", Keypoint * MAX_KEYPOINTS),
     ]
 
@@ -161,7 +168,7 @@ class HandConfiguration(ctypes.Structure):
     ]
 
 
-@_named("graspd.v1.GraspResponse")
+@_named("graspd.v2.GraspResponse")
 class GraspResponse(ctypes.Structure):
     _fields_ = [
         ("registration", Registration),
@@ -201,7 +208,7 @@ class MethodStats(ctypes.Structure):
     ]
 
 
-@_named("graspd.v1.StatsResponse")
+@_named("graspd.v2.StatsResponse")
 class StatsResponse(ctypes.Structure):
     _fields_ = [
         ("uptime_ns", ctypes.c_uint64),
@@ -224,10 +231,11 @@ LAYOUTS = [
     (CategoryInfo, 680, 4, {"latent_dim": 32, "keypoint_names": 40, "canonical_frame": 296}),
     (CategoriesResponse, 5448, 4, {"categories": 8}),
     (Keypoint, 56, 8, {"position_cloud_m": 32}),
-    (Registration, 632, 8, {"scale": 120, "latent_dim": 160, "stray_points": 180, "keypoints": 184}),
+    (Registration, 728, 8, {"rotation_cloud_from_canonical_xyzw": 128, "scale": 184, "viewpoint_cloud_m": 224,
+                            "latent_dim": 248, "stray_points": 268, "viewpoint_source": 272, "keypoints": 280}),
     (HandConfiguration, 312, 8, {"actuated": 56, "joints": 184}),
-    (GraspResponse, 2352, 8, {"grasp": 632, "pregrasp": 944, "actuated_names": 1256, "joint_names": 1768,
-                              "task_space_distance_m": 2280, "table_z_m": 2320, "warnings": 2344}),
+    (GraspResponse, 2448, 8, {"grasp": 728, "pregrasp": 1040, "actuated_names": 1352, "joint_names": 1864,
+                              "task_space_distance_m": 2376, "table_z_m": 2416, "warnings": 2440}),
     (MethodStats, 232, 8, {"requests": 32, "slow": 168, "latency_p50_us": 176, "window": 224}),
     (StatsResponse, 1888, 8, {"methods": 32}),
 ]

@@ -41,7 +41,7 @@ def test_the_wire_types_have_the_contracts_layout():
 @needs_daemon
 def test_health_and_categories(client, fixture):
     h = client.health()
-    assert h["serving"] and h["protocol_version"] == 1 and h["max_points"] > 0
+    assert h["serving"] and h["protocol_version"] == proto.PROTOCOL_VERSION == 2 and h["max_points"] > 0
     cats = client.categories()
     assert [c["name"] for c in cats] == ["mug"]
     assert cats[0]["keypoints"] == [k["name"] for k in fixture["register"]["keypoints"]]
@@ -61,6 +61,7 @@ def test_register_answers_as_the_cli(client, fixture):
     assert r["scale"] == expected["scale"]
     assert r["fit"]["confident"] == expected["fit"]["confident"]
     assert r["fit"]["stray_points"] == expected["fit"]["stray_points"]
+    assert r["estimated_viewpoint"] == expected["estimated_viewpoint"]
     assert r["points"] == len(points)
     # Plain lists of triples go the same way as an array.
     assert client.register("mug", points.tolist())["latent"] == expected["latent"]

@@ -692,6 +692,8 @@ fn registration_cli_json(r: &graspd_client::Registration) -> serde_json::Value {
         },
         "keypoints": r.keypoints,
         "cloud_frame": r.cloud_frame,
+        // As `graspd register`: the camera position assumed when none was given (null: none used).
+        "estimated_viewpoint": r.viewpoint.estimated(),
     })
 }
 

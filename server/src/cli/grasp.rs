@@ -367,6 +367,8 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
             "scale": reg.scale,
             "fit": reg.fit,
             "keypoints": reg.keypoints,
+            // As `graspd register`: the camera position assumed when none was given (null: none used).
+            "estimated_viewpoint": reg.estimated_viewpoint,
         },
         "targets": targets,
         "grasp": grasp_json(&hand, &out.grasp),

@@ -156,7 +156,7 @@ impl Engine {
             .registrar
             .register(&cloud, &opts)
             .map_err(|e| Status::invalid(format!("cannot register the cloud: {e}")))?;
-        Ok(proto::RegisterResponse { registration: registration_to_wire(&reg, points.len()) })
+        Ok(proto::RegisterResponse { registration: registration_to_wire(&reg, points.len(), opts.viewpoint) })
     }
 
     /// Grasp: registration, the category's demonstration carried onto the
@@ -212,7 +212,7 @@ impl Engine {
             warnings |= proto::grasp_warning::PREGRASP_IN_COLLISION;
         }
         let mut r = proto::GraspResponse::zeroed();
-        r.registration = registration_to_wire(&reg, points.len());
+        r.registration = registration_to_wire(&reg, points.len(), opts.viewpoint);
         r.grasp = hand_to_wire(&out.grasp);
         r.pregrasp = hand_to_wire(&out.pregrasp.grasp);
         for (slot, n) in r.actuated_names.iter_mut().zip(&self.actuated_names) {
@@ -333,7 +333,13 @@ pub fn register_options(h: &proto::RequestHeader) -> Result<RegisterOptions, Sta
     Ok(RegisterOptions { up, viewpoint, seed: h.seed, ..Default::default() })
 }
 
-pub fn registration_to_wire(reg: &crate::shape::Registration, points: usize) -> proto::Registration {
+/// The wire's Registration of `reg`, a fit of `points` points given the
+/// camera position `given` (the request's, if any).
+pub fn registration_to_wire(
+    reg: &crate::shape::Registration,
+    points: usize,
+    given: Option<[f64; 3]>,
+) -> proto::Registration {
     let mut r = proto::Registration::zeroed();
     for (slot, v) in r.latent.iter_mut().zip(&reg.latent) {
         *slot = *v;
@@ -353,6 +359,11 @@ pub fn registration_to_wire(reg: &crate::shape::Registration, points: usize) -> 
     r.ambiguous_pose = reg.fit.ambiguous_pose as u32;
     r.stray_points = reg.fit.stray_points.min(u32::MAX as usize) as u32;
     r.points = points.min(u32::MAX as usize) as u32;
+    (r.viewpoint_source, r.viewpoint_cloud_m) = match (given, reg.estimated_viewpoint) {
+        (Some(v), _) => (proto::viewpoint_source::GIVEN, v),
+        (None, Some(v)) => (proto::viewpoint_source::ESTIMATED, v),
+        (None, None) => (proto::viewpoint_source::NONE, [0.0; 3]),
+    };
     for (slot, k) in r.keypoints.iter_mut().zip(&reg.keypoints) {
         slot.name = proto::str_to_text(&k.name);
         slot.position_cloud_m = k.position;
