@@ -235,7 +235,7 @@ macro_rules! zeroed {
 unsafe impl Plain for Point {}
 unsafe impl Plain for NoPayload {}
 
-/// The request user header of every method (iceoryx2 "user header"), 136 bytes.
+/// The request user header of every method (iceoryx2 "user header"), 144 bytes.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
 #[type_name("graspd.v2.RequestHeader")]
 #[repr(C)]
