@@ -208,7 +208,7 @@ fn assert_same_registration(got: &graspd_client::Registration, expected: &serde_
     assert_eq!(got.fit.ambiguous_pose, expected["fit"]["ambiguous_pose"].as_bool().unwrap());
     assert_eq!(u64::from(got.fit.stray_points), expected["fit"]["stray_points"].as_u64().unwrap());
     // No camera position in these requests: the daemon's estimate is the CLI's (null when unsettled).
-    let estimated = expected["estimated_viewpoint"].as_array().map(|_| floats(&expected["estimated_viewpoint"]));
+    let estimated: Option<Vec<f64>> = serde_json::from_value(expected["estimated_viewpoint"].clone()).unwrap();
     assert_eq!(got.viewpoint.estimated().map(|p| p.to_vec()), estimated, "estimated viewpoint");
     assert!(!matches!(got.viewpoint, graspd_client::Viewpoint::Given { .. }));
 }
@@ -485,6 +485,7 @@ fn bad_inputs_get_their_status_and_the_daemon_keeps_serving() {
     assert_same_registration(&c.register("mug", &f.views[1].1, TIMEOUT).unwrap(), &f.views[1].2);
     let s = c.stats().unwrap();
     let reg = &s.methods[proto::Method::Register as usize];
+    // The cases, the given camera position, the two in flight at once and the last.
     assert_eq!(reg.requests as usize, cases.len() + 4);
     assert_eq!(reg.by_status[StatusCode::InvalidArgument as usize], 11);
     assert_eq!(reg.by_status[StatusCode::NotFound as usize], 1);
