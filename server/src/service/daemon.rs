@@ -12,6 +12,7 @@
 
 use super::config::{Config, Waiting};
 use super::engine::{Engine, Status};
+use super::janitor::{cleanup_dead_peers_guarded, ipc_config, start_janitors};
 use super::stats::{rss_bytes, stats_json, Stats};
 use graspd_proto::{self as proto, Method, NoPayload, Point, RequestHeader, ResponseHeader, StatusCode};
 use iceoryx2::active_request::ActiveRequest;
@@ -870,7 +871,6 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
     let ipc_config = ipc_config();
     // Stale resources of crashed peers (a crashed daemon's server port would
     // keep this daemon from serving) are removed before anything is created.
-    let background_stop = Arc::new(AtomicBool::new(false));
     cleanup_dead_peers_guarded(&ipc_config);
     let node = ipc!(
         NodeBuilder::new()
@@ -931,7 +931,7 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
             .create::<Ipc>(),
         "reply node"
     )?;
-    start_janitors(&ipc_config, Duration::from_millis(config.housekeeping_ms), background_stop.clone())?;
+    let janitors = start_janitors(&ipc_config, Duration::from_millis(config.housekeeping_ms))?;
     let workers = config.worker_count();
     let (opener_tx, opener_rx) = std::sync::mpsc::channel();
     let startup_ns = process_start.elapsed().as_nanos() as u64;
@@ -1010,7 +1010,7 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
 
     let abandoned = shared.in_flight_total();
     shared.stop_workers.store(true, Ordering::Release);
-    background_stop.store(true, Ordering::Release);
+    janitors.stop(Duration::from_secs(1));
     if abandoned == 0 {
         for h in handles {
             let _ = h.join();
@@ -1048,121 +1048,6 @@ fn shared_engine_handle(shared: &Arc<Shared>) -> super::uds::EngineHandle {
             s.engine.register(category, pts, h)
         }),
     }
-}
-
-/// iceoryx2 configuration of the daemon's nodes: no implicit dead-node cleanup
-/// (on node creation or destruction, on opening a service). Those cleanups can
-/// block forever on a peer killed at the wrong moment (see
-/// `graspd_proto::hygiene`); the daemon cleans explicitly, off the serving path.
-pub fn ipc_config() -> iceoryx2::config::Config {
-    let mut c = iceoryx2::config::Config::global_config().clone();
-    c.global.node.cleanup_dead_nodes_on_creation = false;
-    c.global.node.cleanup_dead_nodes_on_destruction = false;
-    c.global.service.cleanup_dead_nodes_on_open = false;
-    c
-}
-
-fn janitor_node(config: &iceoryx2::config::Config) -> Option<Node<Ipc>> {
-    let name: NodeName = "graspd-janitor".try_into().ok()?;
-    NodeBuilder::new()
-        .name(&name)
-        .config(config)
-        .signal_handling_mode(SignalHandlingMode::Disabled)
-        .create::<Ipc>()
-        .ok()
-}
-
-/// Removes the resources of dead iceoryx2 peers, purging abandoned shared
-/// memory meanwhile so that the cleanup cannot hang on it.
-fn cleanup_dead_peers_guarded(config: &iceoryx2::config::Config) {
-    let purged = graspd_proto::hygiene::purge_abandoned_shm(Duration::from_secs(1));
-    let cfg = config.clone();
-    let (tx, rx) = std::sync::mpsc::channel();
-    let spawned = std::thread::Builder::new().name("graspd-cleanup".into()).spawn(move || {
-        let r = janitor_node(&cfg).map(|n| n.try_cleanup_dead_nodes());
-        let _ = tx.send(r);
-    });
-    if spawned.is_err() {
-        return;
-    }
-    let t0 = Instant::now();
-    loop {
-        match rx.recv_timeout(Duration::from_millis(300)) {
-            Ok(Some(c)) => {
-                tracing::info!(
-                    cleanups = c.cleanups,
-                    failed = c.failed_cleanups,
-                    purged,
-                    "removed the stale resources of dead iceoryx2 peers"
-                );
-                return;
-            }
-            Ok(None) | Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => return,
-            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
-                graspd_proto::hygiene::purge_abandoned_shm(Duration::from_secs(1));
-                if t0.elapsed() > Duration::from_secs(30) {
-                    tracing::warn!("the cleanup of dead peers takes over 30 s; serving without waiting for it");
-                    return;
-                }
-            }
-        }
-    }
-}
-
-/// Background housekeeping: one thread removes dead peers' resources every
-/// `period`, another purges abandoned shared memory every second (which also
-/// frees the first should a cleanup ever block).
-fn start_janitors(
-    config: &iceoryx2::config::Config,
-    period: Duration,
-    stop: Arc<AtomicBool>,
-) -> Result<(), ServeError> {
-    let cfg = config.clone();
-    let s = stop.clone();
-    std::thread::Builder::new()
-        .name("graspd-janitor".into())
-        .spawn(move || {
-            let Some(node) = janitor_node(&cfg) else { return };
-            // A dead peer whose resources cannot be removed (another user's,
-            // say) fails again on every pass: say so when the count changes,
-            // not twice a second for the daemon's life.
-            let mut failing = 0;
-            while !s.load(Ordering::Acquire) {
-                std::thread::sleep(period);
-                let c = node.try_cleanup_dead_nodes();
-                if c.cleanups > 0 {
-                    tracing::info!(cleanups = c.cleanups, "removed the resources of dead peers");
-                }
-                if c.failed_cleanups != failing {
-                    if c.failed_cleanups > 0 {
-                        tracing::warn!(
-                            failed = c.failed_cleanups,
-                            "cannot remove the resources of some dead peers (retrying every pass; said again when the count changes)"
-                        );
-                    } else {
-                        tracing::info!("the dead peers' resources that could not be removed are gone");
-                    }
-                    failing = c.failed_cleanups;
-                }
-            }
-        })
-        .map_err(|e| ServeError::Ipc(format!("cannot start the janitor: {e}")))?;
-    std::thread::Builder::new()
-        .name("graspd-purger".into())
-        .spawn(move || {
-            while !stop.load(Ordering::Acquire) {
-                std::thread::sleep(Duration::from_secs(1));
-                let n = graspd_proto::hygiene::purge_abandoned_shm(Duration::from_secs(1));
-                if n > 0 {
-                    tracing::info!(
-                        removed = n,
-                        "removed abandoned shared-memory objects of peers killed while creating them"
-                    );
-                }
-            }
-        })
-        .map_err(|e| ServeError::Ipc(format!("cannot start the purger: {e}")))?;
-    Ok(())
 }
 
 /// Whether SIGINT/SIGTERM arrived since the last call (iceoryx2's handler sets

@@ -4,6 +4,7 @@
 pub mod config;
 pub mod daemon;
 pub mod engine;
+mod janitor;
 pub mod stats;
 pub mod uds;
 
