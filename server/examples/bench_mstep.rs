@@ -1,7 +1,8 @@
 //! Times the M-step's normal operator Qᵀ(p1 ⊙ Q v) + reg ⊙ v on each SIMD
 //! level, at the peer benchmark's size (1,024 points, rank 369), one thread.
 //! `cargo run --release --example bench_mstep`
-use graspd::shape::mstep::{Level, LowRankFactor};
+use graspd::shape::mstep::LowRankFactor;
+use graspd::simd::Simd;
 use rand::{Rng, SeedableRng};
 
 fn main() {
@@ -13,7 +14,7 @@ fn main() {
     let reg: Vec<f64> = (0..k).map(|_| r.random()).collect();
     let v: Vec<[f64; 3]> = (0..k).map(|_| [r.random(), r.random(), r.random()]).collect();
     let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("a one-thread pool");
-    for level in Level::available() {
+    for level in Simd::available() {
         let f = LowRankFactor::with_level(q.as_ref(), level);
         let best = pool.install(|| {
             (0..7)

@@ -1,4 +1,6 @@
-//! The vector unit's state after faer's dense kernels.
+//! The vector units: which kernels a CPU runs ([`Simd`], chosen in one
+//! place for every hand-vectorised kernel: E-step, kernel factor, M-step),
+//! and their state after faer's dense kernels ([`clear_upper_state`]).
 //!
 //! faer's matrix products run the `gemm` crate's AVX/AVX-512 microkernels,
 //! which return with the upper halves of the vector registers dirty (no
@@ -10,6 +12,66 @@
 //! run faer's products. Our own AVX kernels (`#[target_feature]`) clear the
 //! state on return, as LLVM compiles them; faer's do not, so each call site
 //! of a faer product or decomposition calls [`clear_upper_state`] after it.
+
+/// A level of hand-written vector kernels. Every kernel with levels takes the
+/// widest the CPU has ([`Simd::detect`]); tests hold each of
+/// [`Simd::available`] to the portable sums.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Simd {
+    /// Loops written for LLVM's vectoriser (plain x86-64: unfused, so its
+    /// sums round differently from the others').
+    Portable,
+    /// AVX2 and FMA, eight f32 lanes.
+    Avx2,
+    /// AVX-512F, sixteen f32 lanes.
+    Avx512,
+}
+
+impl Simd {
+    /// Whether this CPU runs the level's kernels.
+    pub fn runs(self) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        {
+            match self {
+                Simd::Portable => true,
+                Simd::Avx2 => std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma"),
+                Simd::Avx512 => std::is_x86_feature_detected!("avx512f"),
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            self == Simd::Portable
+        }
+    }
+
+    /// Every level this CPU runs, portable first (tests and benchmarks hold
+    /// them to each other), whatever `GRASPD_SIMD` says.
+    pub fn available() -> Vec<Simd> {
+        [Simd::Portable, Simd::Avx2, Simd::Avx512].into_iter().filter(|l| l.runs()).collect()
+    }
+
+    /// The widest level this CPU runs, up to `cap` and to the environment's
+    /// `GRASPD_SIMD` (portable, avx2 or avx512): the kernels' sums round
+    /// differently, so fits agree bit for bit only between machines on one level.
+    pub fn detect(cap: Simd) -> Simd {
+        static ENV_CAP: std::sync::OnceLock<Simd> = std::sync::OnceLock::new();
+        let env_cap = *ENV_CAP.get_or_init(|| match std::env::var("GRASPD_SIMD").as_deref() {
+            Ok("portable") => Simd::Portable,
+            Ok("avx2") => Simd::Avx2,
+            Ok("avx512") | Err(std::env::VarError::NotPresent) => Simd::Avx512,
+            Ok(other) => {
+                tracing::warn!("GRASPD_SIMD={other:?} is none of portable, avx2, avx512: not capping the kernels");
+                Simd::Avx512
+            }
+            Err(std::env::VarError::NotUnicode(v)) => {
+                tracing::warn!("GRASPD_SIMD={v:?} is not UTF-8: not capping the kernels");
+                Simd::Avx512
+            }
+        });
+        let cap = cap.min(env_cap);
+        Simd::available().into_iter().rfind(|&l| l <= cap).unwrap_or(Simd::Portable)
+    }
+}
 
 /// Zeroes the upper halves of the vector registers (`vzeroupper`) where the
 /// CPU has AVX; nothing elsewhere. Costs about a cycle.

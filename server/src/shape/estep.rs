@@ -17,53 +17,7 @@ use rayon::prelude::*;
 #[cfg(target_arch = "x86_64")]
 mod avx512;
 
-/// The vector kernels an E-step takes: the widest the CPU has, up to a cap
-/// (tests hold each level to the textbook sums).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
-pub enum Simd {
-    /// Loops written for LLVM's vectoriser.
-    Portable,
-    /// AVX2 and FMA, eight f32 lanes.
-    Avx2,
-    /// AVX-512F, sixteen f32 lanes (single precision only).
-    Avx512,
-}
-
-impl Simd {
-    /// The widest level this CPU runs, up to `cap` and to the environment's
-    /// `GRASPD_SIMD` (portable, avx2 or avx512): the kernels' sums round
-    /// differently, so fits agree bit for bit only between machines on one level.
-    pub fn detect(cap: Simd) -> Simd {
-        static ENV_CAP: std::sync::OnceLock<Simd> = std::sync::OnceLock::new();
-        let env_cap = *ENV_CAP.get_or_init(|| match std::env::var("GRASPD_SIMD").as_deref() {
-            Ok("portable") => Simd::Portable,
-            Ok("avx2") => Simd::Avx2,
-            Ok("avx512") | Err(std::env::VarError::NotPresent) => Simd::Avx512,
-            Ok(other) => {
-                tracing::warn!(
-                    "GRASPD_SIMD={other:?} is none of portable, avx2, avx512: not capping the E-step kernels"
-                );
-                Simd::Avx512
-            }
-            Err(std::env::VarError::NotUnicode(v)) => {
-                tracing::warn!("GRASPD_SIMD={v:?} is not UTF-8: not capping the E-step kernels");
-                Simd::Avx512
-            }
-        });
-        let cap = cap.min(env_cap);
-        #[cfg(target_arch = "x86_64")]
-        {
-            if cap >= Simd::Avx512 && std::is_x86_feature_detected!("avx512f") {
-                return Simd::Avx512;
-            }
-            if cap >= Simd::Avx2 && std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-                return Simd::Avx2;
-            }
-        }
-        let _ = cap;
-        Simd::Portable
-    }
-}
+pub use crate::simd::Simd;
 
 pub type P3 = [f64; 3];
 

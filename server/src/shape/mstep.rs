@@ -19,6 +19,7 @@
 //! not by the multipliers. The CPD's E-step kernels already round
 //! differently per level, so whole fits never agreed across levels anyway.
 
+use crate::simd::Simd;
 use rayon::prelude::*;
 
 /// Rows in one parallel task, fixed so that sums split alike on every machine.
@@ -44,50 +45,17 @@ pub struct LowRankFactor {
     k: usize,
     kp: usize,
     rows: Vec<f32>,
-    level: Level,
-}
-
-/// The instruction set a kernel body is compiled for (AVX2 and AVX-512 give
-/// the same bits; plain x86-64, unfused, rounds differently).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Level {
-    Portable,
-    Avx2,
-    Avx512,
-}
-
-impl Level {
-    /// Every level this CPU runs, portable first (tests and benchmarks hold
-    /// them to each other).
-    pub fn available() -> Vec<Level> {
-        let mut l = vec![Level::Portable];
-        #[cfg(target_arch = "x86_64")]
-        {
-            if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-                l.push(Level::Avx2);
-            }
-            if std::is_x86_feature_detected!("avx512f") {
-                l.push(Level::Avx512);
-            }
-        }
-        l
-    }
+    level: Simd,
 }
 
 impl LowRankFactor {
     /// Q (M×k, column-major as faer keeps it), for this CPU's widest level.
     pub fn new(q: faer::MatRef<'_, f64>) -> Self {
-        use super::estep::Simd;
-        let level = match Simd::detect(Simd::Avx512) {
-            Simd::Avx512 => Level::Avx512,
-            Simd::Avx2 => Level::Avx2,
-            Simd::Portable => Level::Portable,
-        };
-        Self::with_level(q, level)
+        Self::with_level(q, Simd::detect(Simd::Avx512))
     }
 
     /// As [`Self::new`] on a chosen level (tests hold the levels to each other).
-    pub fn with_level(q: faer::MatRef<'_, f64>, level: Level) -> Self {
+    pub fn with_level(q: faer::MatRef<'_, f64>, level: Simd) -> Self {
         let (m, k) = (q.nrows(), q.ncols());
         let kp = k.div_ceil(LANES) * LANES;
         let mut rows = vec![0.0f32; m * kp];
@@ -206,9 +174,9 @@ macro_rules! dispatch {
             match $level {
                 // SAFETY: a level above Portable is chosen only where the CPU
                 // runs it (Simd::detect) or by a test that checked it.
-                Level::Avx512 => unsafe { kernels::avx512::$f($($arg),*) },
-                Level::Avx2 => unsafe { kernels::avx2::$f($($arg),*) },
-                Level::Portable => kernels::$f($($arg),*),
+                Simd::Avx512 => unsafe { kernels::avx512::$f($($arg),*) },
+                Simd::Avx2 => unsafe { kernels::avx2::$f($($arg),*) },
+                Simd::Portable => kernels::$f($($arg),*),
             }
         }
         #[cfg(not(target_arch = "x86_64"))]
@@ -526,7 +494,7 @@ mod tests {
             }
         };
         let mut first: Option<Vec<Vec<[f64; 3]>>> = None;
-        for level in Level::available() {
+        for level in Simd::available() {
             let op = LowRankFactor::with_level(q.as_ref(), level);
             let (z, its) = pcg(&op, &lambda, &p1, s, &rows(&b), &vec![[0.0; 3]; k], 1e-10).expect("converges");
             assert!(its > 0 && its <= PCG_MAX_ITERATIONS);
@@ -550,7 +518,7 @@ mod tests {
             for j in 0..k {
                 assert!((d[j] + reg[j] - a[(j, j)]).abs() < 1e-12, "diagonal {j}");
             }
-            if level == Level::Portable {
+            if level == Simd::Portable {
                 continue;
             }
             let all = vec![z, normal, qz, qtf, d.iter().map(|&x| [x, 0.0, 0.0]).collect()];
