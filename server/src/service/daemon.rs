@@ -1033,11 +1033,16 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
     }
 }
 
+/// The engine for the Unix-socket baseline. Weak: its accept thread is never
+/// joined, and a strong handle would keep `Shared` (and through its reply
+/// notifiers the daemon's iceoryx2 node) alive past the daemon's end, leaving
+/// the node behind for the next daemon to clean as a dead peer's.
 fn shared_engine_handle(shared: &Arc<Shared>) -> super::uds::EngineHandle {
-    let s = shared.clone();
+    let weak = Arc::downgrade(shared);
     super::uds::EngineHandle {
         max_points: shared.config.max_points as usize,
         register: Box::new(move |pts: &[Point], h: &RequestHeader| {
+            let s = weak.upgrade().ok_or_else(|| Status::new(StatusCode::Unavailable, "the daemon has stopped"))?;
             let category = proto::name_to_str(&h.category)
                 .map_err(|e| Status::invalid(format!("category: {e}")))
                 .and_then(|n| {
