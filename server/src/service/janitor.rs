@@ -1,6 +1,8 @@
 //! The daemon's housekeeping of iceoryx2's shared resources: the nodes'
 //! configuration, and the threads that remove what dead peers left behind
-//! (their nodes, ports and services; shared memory abandoned half-created).
+//! (their nodes, ports and services; shared memory abandoned half-created),
+//! including what iceoryx2 0.10's own cleanup cannot remove: tags left
+//! half-written and directories of nodes killed before they were listed.
 
 use super::daemon::Ipc;
 use iceoryx2::node::NodeView;
