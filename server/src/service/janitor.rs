@@ -5,7 +5,7 @@
 //! half-written and directories of nodes killed before they were listed.
 
 use super::daemon::Ipc;
-use iceoryx2::node::NodeView;
+use iceoryx2::node::{CleanupState, NodeView};
 use iceoryx2::prelude::*;
 use std::os::unix::fs::PermissionsExt;
 use std::path::PathBuf;
@@ -54,7 +54,7 @@ pub(super) fn cleanup_dead_peers_guarded(config: &iceoryx2::config::Config) {
             Ok(Some(c)) => {
                 tracing::info!(
                     cleanups = c.cleanups,
-                    failed = c.failed,
+                    failed = c.failed_cleanups,
                     purged,
                     "removed the stale resources of dead iceoryx2 peers"
                 );
@@ -114,16 +114,16 @@ pub(super) fn start_janitors(
                 if c.cleanups > 0 {
                     tracing::info!(cleanups = c.cleanups, "removed the resources of dead peers");
                 }
-                if c.failed != failing {
-                    if c.failed > 0 {
+                if c.failed_cleanups != failing {
+                    if c.failed_cleanups > 0 {
                         tracing::warn!(
-                            failed = c.failed,
+                            failed = c.failed_cleanups,
                             "cannot remove the resources of some dead peers (retrying every pass; said again when the count changes)"
                         );
                     } else {
                         tracing::info!("the dead peers' resources that could not be removed are gone");
                     }
-                    failing = c.failed;
+                    failing = c.failed_cleanups;
                 }
             }
         })
@@ -171,20 +171,11 @@ impl Drop for Janitors {
     }
 }
 
-/// One cleanup pass's outcome.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub(super) struct Cleanup {
-    /// Dead nodes whose resources were removed.
-    pub cleanups: u64,
-    /// Dead nodes whose resources could not be removed (retried next pass).
-    pub failed: u64,
-}
-
 /// Removes the resources of dead peers, repairing first the tags iceoryx2
 /// cannot remove by itself (see [`finish_orphaned_tags`]). First: a failed
 /// cleanup removes the node's details, and without them iceoryx2 cleans with
 /// its global configuration instead of the node's.
-pub(super) fn cleanup_dead_nodes(node: &Node<Ipc>, config: &iceoryx2::config::Config) -> Cleanup {
+pub(super) fn cleanup_dead_nodes(node: &Node<Ipc>, config: &iceoryx2::config::Config) -> CleanupState {
     let finished = finish_orphaned_tags(config);
     let c = node.try_cleanup_dead_nodes();
     if finished > 0 {
@@ -194,7 +185,14 @@ pub(super) fn cleanup_dead_nodes(node: &Node<Ipc>, config: &iceoryx2::config::Co
     if unborn > 0 {
         tracing::info!(nodes = unborn, "removed the directories of peers killed while their node was being made");
     }
-    Cleanup { cleanups: c.cleanups, failed: c.failed_cleanups }
+    c
+}
+
+/// Whether a file is iceoryx2 static storage still being written: created
+/// read-write for its owner, made read-only once written (iceoryx2-cal's
+/// static storage; listing skips such files).
+fn being_written(m: &std::fs::Metadata) -> bool {
+    m.is_file() && m.permissions().mode() & 0o777 == 0o600
 }
 
 /// Age from which a node directory without a monitor is taken as abandoned
@@ -233,8 +231,7 @@ pub(super) fn remove_unborn_nodes(config: &iceoryx2::config::Config, min_age: Du
         let Ok(inside) = std::fs::read_dir(dir.path()) else { continue };
         let inside: Vec<_> = inside.flatten().collect();
         let unborn = inside.iter().all(|f| {
-            f.file_name().to_string_lossy() == details
-                && f.metadata().is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o777 == 0o600 && old(&m))
+            f.file_name().to_string_lossy() == details && f.metadata().is_ok_and(|m| being_written(&m) && old(&m))
         });
         if unborn && std::fs::remove_dir_all(dir.path()).is_ok() {
             removed += 1;
@@ -278,8 +275,10 @@ pub(super) fn finish_orphaned_tags(config: &iceoryx2::config::Config) -> usize {
             let name = e.file_name().to_string_lossy().into_owned();
             let Ok(meta) = e.metadata() else { continue };
             let tag = name.starts_with(&prefix) && suffixes.iter().any(|s| name.ends_with(s.as_str()));
-            let unfinished = meta.is_file() && meta.permissions().mode() & 0o777 == 0o600;
-            if tag && unfinished && std::fs::set_permissions(e.path(), std::fs::Permissions::from_mode(0o400)).is_ok() {
+            if tag
+                && being_written(&meta)
+                && std::fs::set_permissions(e.path(), std::fs::Permissions::from_mode(0o400)).is_ok()
+            {
                 finished += 1;
             }
         }
@@ -378,7 +377,7 @@ mod tests {
         assert!(tags >= 2, "a service tag and a port tag: {tags}");
         let janitor = janitor_node(&config).expect("a janitor node");
         let c = cleanup_dead_nodes(&janitor, &config);
-        assert_eq!((c.cleanups, c.failed), (1, 0));
+        assert_eq!((c.cleanups, c.failed_cleanups), (1, 0));
         let left: Vec<_> =
             std::fs::read_dir(&dirs[0]).map(|d| d.flatten().map(|e| e.file_name()).collect()).unwrap_or_default();
         assert!(!dirs[0].exists(), "the dead node's directory is removed: {left:?}");
