@@ -69,7 +69,8 @@ impl Simd {
             }
         });
         let cap = cap.min(env_cap);
-        Simd::available().into_iter().rfind(|&l| l <= cap).unwrap_or(Simd::Portable)
+        // Called for every E-step: no allocation (`available` makes a Vec).
+        [Simd::Avx512, Simd::Avx2].into_iter().find(|&l| l <= cap && l.runs()).unwrap_or(Simd::Portable)
     }
 }
 

@@ -980,7 +980,7 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
         startup_ms = startup_ns as f64 * 1e-6,
         // Which E-step kernels this CPU runs (GRASPD_SIMD caps them): the
         // first thing to know when fits are slower than the figures say.
-        estep_kernels = ?crate::shape::estep::Simd::detect(crate::shape::estep::Simd::Avx512),
+        estep_kernels = ?crate::simd::Simd::detect(crate::simd::Simd::Avx512),
         "serving"
     );
     if opts.ready_line {

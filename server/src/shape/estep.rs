@@ -17,7 +17,7 @@ use rayon::prelude::*;
 #[cfg(target_arch = "x86_64")]
 mod avx512;
 
-pub use crate::simd::Simd;
+use crate::simd::Simd;
 
 pub type P3 = [f64; 3];
 

@@ -9,9 +9,10 @@
 //! partial pivoted Cholesky G ≈ L Lᵀ that evaluates only the columns it
 //! needs, then the eigenvectors of L Lᵀ from the small matrix Lᵀ L.
 
-use super::estep::{dist2, Simd, P3};
+use super::estep::{dist2, P3};
 use super::fastexp::exp_neg;
 use crate::simd::clear_upper_state;
+use crate::simd::Simd;
 use faer::prelude::*;
 use faer::Side;
 use rayon::prelude::*;
