@@ -65,6 +65,9 @@ pub enum EvalCommand {
         /// `eval transfer` does by default); without it the viewpoint is estimated.
         #[arg(long)]
         known_viewpoint: bool,
+        /// Registration options as a JSON object laid over the defaults (as for `eval transfer`).
+        #[arg(long)]
+        register_options: Option<String>,
         #[arg(long)]
         json: bool,
     },
@@ -74,7 +77,11 @@ pub enum EvalCommand {
 
 pub fn run(cmd: EvalCommand) -> CliResult {
     match cmd {
-        EvalCommand::Ycb { category, views, data, seed, known_viewpoint, json } => {
+        EvalCommand::Ycb { category, views, data, seed, known_viewpoint, register_options, json } => {
+            let register = match register_options {
+                Some(j) => super::overlay_json(graspd::shape::RegisterOptions::default(), &j, "--register-options")?,
+                None => graspd::shape::RegisterOptions::default(),
+            };
             let data = data.unwrap_or_else(|| super::assets_dir().join("../../shared/data"));
             let cats: Vec<Category> = match category {
                 Some(c) => vec![c.parse()?],
@@ -88,7 +95,15 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                     continue;
                 }
                 let registrar = Registrar::new(builtin::load_or_build(c, &spaces_dir(), |_, _| {})?);
-                reports.push(graspd::eval::ycb::evaluate(&registrar, c, &path, views, seed, known_viewpoint)?);
+                reports.push(graspd::eval::ycb::evaluate(
+                    &registrar,
+                    c,
+                    &path,
+                    views,
+                    seed,
+                    known_viewpoint,
+                    &register,
+                )?);
             }
             if json {
                 print_json(&reports)?;

@@ -44,6 +44,7 @@ pub fn evaluate(
     views: usize,
     seed: u64,
     known_viewpoint: bool,
+    base: &RegisterOptions,
 ) -> Result<YcbReport, Box<dyn std::error::Error>> {
     let mesh = crate::io::read_mesh(mesh_path)?.mesh;
     let truth = to_p3(&sample_points(&mesh, 4000, 99)?);
@@ -58,8 +59,7 @@ pub fn evaluate(
             DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: pose, noise: DepthNoise::default() };
         let cloud = cam.capture(&scene, seed + view as u64)?.points_world;
         let viewpoint = known_viewpoint.then(|| pose.translation.vector.into());
-        let reg = registrar
-            .register(&cloud, &RegisterOptions { seed: seed + view as u64, viewpoint, ..Default::default() })?;
+        let reg = registrar.register(&cloud, &RegisterOptions { seed: seed + view as u64, viewpoint, ..*base })?;
         chamfer.push(chamfer_mm(&to_p3(&registrar.completed_shape(&reg)), &truth));
         inliers.push(reg.fit.inlier_fraction);
         scale.push(reg.scale);

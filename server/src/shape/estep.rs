@@ -16,6 +16,9 @@ use rayon::prelude::*;
 
 #[cfg(target_arch = "x86_64")]
 mod avx512;
+mod surfel;
+
+pub use surfel::{ResidualSums, Surfels};
 
 use crate::simd::Simd;
 
@@ -34,6 +37,20 @@ pub struct Posteriors {
     pub np: f64,
     /// −Σ_n log(Σ_m e^{-d²/2σ²} + c) + N·3/2·log σ² (up to constants).
     pub neg_log_likelihood: f64,
+}
+
+impl Posteriors {
+    /// Zeroed sums for `m` moving and `n` data points (buffers kept).
+    fn reset(&mut self, m: usize, n: usize) {
+        self.p1.clear();
+        self.p1.resize(m, 0.0);
+        self.pt1.clear();
+        self.pt1.resize(n, 0.0);
+        self.px.clear();
+        self.px.resize(m, [0.0; 3]);
+        self.np = 0.0;
+        self.neg_log_likelihood = 0.0;
+    }
 }
 
 /// Distance in σ beyond which pairs are dropped in truncated mode, by default:
@@ -74,6 +91,7 @@ pub struct EStep {
     scratch: Posteriors,
     /// The kernels taken (`Simd::detect` at construction; tests lower it).
     simd: Simd,
+    surfel_buf: surfel::SurfelBuffers,
 }
 
 impl EStep {
@@ -100,6 +118,7 @@ impl EStep {
             list: NeighbourList::default(),
             scratch: Posteriors::default(),
             simd: Simd::detect(Simd::Avx512),
+            surfel_buf: Default::default(),
         }
     }
 
@@ -118,14 +137,7 @@ impl EStep {
     /// see a small weight: they cannot have produced an observation.
     pub fn run_weighted(&mut self, y: &[P3], weights: Option<&[f64]>, sigma2: f64, w: f64, out: &mut Posteriors) {
         let (m, n) = (y.len(), self.x.len());
-        out.p1.clear();
-        out.p1.resize(m, 0.0);
-        out.pt1.clear();
-        out.pt1.resize(n, 0.0);
-        out.px.clear();
-        out.px.resize(m, [0.0; 3]);
-        out.np = 0.0;
-        out.neg_log_likelihood = 0.0;
+        out.reset(m, n);
         if m == 0 || n == 0 {
             return;
         }
