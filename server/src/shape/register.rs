@@ -1243,11 +1243,10 @@ impl LatentStep {
         }
     }
 
-    /// The MAP latent for these posteriors and pose; `reg` = prior weight·σ²/s².
-    fn solve(&self, post: &Posteriors, pose: &Pose, reg: f64, var: &[f64]) -> Option<Vec<f64>> {
-        let q = self.q;
+    /// rᵢ = Rᵀ(PXᵢ − P1ᵢ t)/s − P1ᵢ baseᵢ, the posterior-weighted residuals
+    /// of the mean shape in the model frame, as three columns.
+    fn residuals(&self, post: &Posteriors, pose: &Pose) -> [Vec<f64>; 3] {
         let rt = pose.r.transpose();
-        // rᵢ = Rᵀ(PXᵢ − P1ᵢ t)/s − P1ᵢ baseᵢ, as three columns.
         let m = post.p1.len();
         let mut r: [Vec<f64>; 3] = Default::default();
         for c in r.iter_mut() {
@@ -1259,6 +1258,13 @@ impl LatentStep {
                 r[d].push(v[d] - self.base[d][i] * p1);
             }
         }
+        r
+    }
+
+    /// The MAP latent for these posteriors and pose; `reg` = prior weight·σ²/s².
+    fn solve(&self, post: &Posteriors, pose: &Pose, reg: f64, var: &[f64]) -> Option<Vec<f64>> {
+        let q = self.q;
+        let r = self.residuals(post, pose);
         let mut a = Mat::<f64>::zeros(q, q);
         let mut b = Mat::<f64>::zeros(q, 1);
         let mut e = 0;

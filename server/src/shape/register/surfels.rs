@@ -10,7 +10,7 @@
 
 use super::{dot_slices, Fit, LatentLevel, RegisterOptions, View, LOOSE_SCALE_PRIOR_STD};
 use crate::shape::cpd::Normalization;
-use crate::shape::estep::{Posteriors, Surfels, P3};
+use crate::shape::estep::{dot, Posteriors, Surfels, P3};
 use crate::simd::clear_upper_state;
 use faer::prelude::*;
 use faer::Side;
@@ -63,7 +63,7 @@ pub(super) fn em_surfels(
     // Each basis vector's component along the point's canonical normal (the
     // latent's normal equations need Bᵢᵀnᵢ); columns over the points.
     let basis_normal: Vec<Vec<f64>> =
-        model.basis.iter().map(|b| b.iter().zip(normals).map(|(v, n)| dot3(v, n)).collect()).collect();
+        model.basis.iter().map(|b| b.iter().zip(normals).map(|(v, n)| dot(v, n)).collect()).collect();
     let (mut prev, mut nll, mut it) = (f64::INFINITY, f64::INFINITY, 0);
     model.evaluate_into(&latent, &mut y_model);
     while it < iters {
@@ -106,10 +106,6 @@ pub(super) fn em_surfels(
     }
     let sigma2 = Surfels { normals: &[], tangent_sigma2: tangent2, normal_sigma2: normal2 }.equivalent_sigma2();
     Fit { pose, latent, sigma2, nll, iterations: it }
-}
-
-fn dot3(a: &P3, b: &P3) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 /// Gauss-Newton on rotation (a rotation vector on the left), log scale and
@@ -208,20 +204,9 @@ fn latent_step(
     if q == 0 {
         return None;
     }
-    let m = post.p1.len();
-    let rt = pose.r.transpose();
-    // P1·(z − base) as three columns, and P1·n·(z − base).
-    let mut r: [Vec<f64>; 3] = Default::default();
-    let mut rn = Vec::with_capacity(m);
-    for (i, (&p1, px)) in post.p1.iter().zip(&post.px).enumerate() {
-        let v = rt * (Vector3::from(*px) - pose.t * p1) / pose.s;
-        let mut res = [0.0; 3];
-        for d in 0..3 {
-            res[d] = v[d] - step.base[d][i] * p1;
-            r[d].push(res[d]);
-        }
-        rn.push(dot3(&res, &normals[i]));
-    }
+    // P1·(z − base) as three columns, and its component along each normal.
+    let r = step.residuals(post, pose);
+    let rn: Vec<f64> = normals.iter().enumerate().map(|(i, n)| dot(&[r[0][i], r[1][i], r[2][i]], n)).collect();
     let s2 = pose.s * pose.s;
     let weighted_bn: Vec<Vec<f64>> =
         basis_normal.iter().map(|c| c.iter().zip(&post.p1).map(|(v, p)| v * p).collect()).collect();
