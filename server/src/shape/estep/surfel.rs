@@ -90,8 +90,9 @@ pub(super) struct SurfelBuffers {
     /// call of a fit: the model moves little within one); `usize::MAX` pads.
     order: Vec<usize>,
     blocks: Vec<Block>,
-    /// Bounding spheres of the blocks: centre and radius.
-    spheres: Vec<[f32; 4]>,
+    /// Bounding spheres of the blocks as columns (centre x, y, z and
+    /// radius), for the kernel's vector test of which blocks a data point reaches.
+    spheres: [Vec<f32>; 4],
     /// Per block: the row's affinities, and the P1 and PX sums.
     row: Vec<Lanes>,
     acc: Vec<[Lanes; 4]>,
@@ -110,10 +111,8 @@ impl SurfelBuffers {
         }
         let nb = self.order.len() / BLOCK;
         self.blocks.resize(nb, Block::default());
-        self.spheres.resize(nb, [0.0; 4]);
-        for ((block, sphere), slots) in
-            self.blocks.iter_mut().zip(&mut self.spheres).zip(self.order.chunks_exact(BLOCK))
-        {
+        self.spheres.iter_mut().for_each(|c| c.clear());
+        for (block, slots) in self.blocks.iter_mut().zip(self.order.chunks_exact(BLOCK)) {
             // Padding repeats the block's first point with no weight, so it leaves the sphere alone.
             let first = slots[0];
             let mut c = [0.0f64; 3];
@@ -128,7 +127,9 @@ impl SurfelBuffers {
                 block.pi[l] = w as f32;
             }
             let r2 = slots.iter().map(|&i| dist2(&y[if i == usize::MAX { first } else { i }], &c)).fold(0.0, f64::max);
-            *sphere = [c[0] as f32, c[1] as f32, c[2] as f32, r2.sqrt() as f32];
+            for (col, v) in self.spheres.iter_mut().zip([c[0], c[1], c[2], r2.sqrt()]) {
+                col.push(v as f32);
+            }
         }
         self.row.resize(nb, [0.0; BLOCK]);
         self.acc.clear();
@@ -256,17 +257,14 @@ struct Factors {
 fn blocked_surfels_rows<const FMA: bool>(b: &mut SurfelBuffers, k: Factors, out: &mut Posteriors) -> ResidualSums {
     let SurfelBuffers { blocks, spheres, row, acc, live, x, .. } = b;
     let Factors { kt, kd, cutoff, c } = k;
-    // The spheres as columns (centre, squared reach), for a vector test.
-    let reach2: Vec<f32> = spheres.iter().map(|s| (cutoff + s[3]) * (cutoff + s[3])).collect();
-    let centres: [Vec<f32>; 3] = [0, 1, 2].map(|d| spheres.iter().map(|s| s[d]).collect());
-    let mut inside = vec![0u32; spheres.len()];
-    live.resize(spheres.len(), 0);
+    let [cx, cy, cz, radius] = &*spheres;
+    let reach2: Vec<f32> = radius.iter().map(|r| (cutoff + r) * (cutoff + r)).collect();
+    let mut inside = vec![0u32; radius.len()];
+    live.resize(radius.len(), 0);
     let mut log_den = LogSum::default();
     let mut sums = ResidualSums::default();
     for (xn, share) in x.iter().zip(out.pt1.iter_mut()) {
-        for ((((v, cx), cy), cz), r2) in
-            inside.iter_mut().zip(&centres[0]).zip(&centres[1]).zip(&centres[2]).zip(&reach2)
-        {
+        for ((((v, cx), cy), cz), r2) in inside.iter_mut().zip(cx).zip(cy).zip(cz).zip(&reach2) {
             let (dx, dy, dz) = (xn[0] - cx, xn[1] - cy, xn[2] - cz);
             *v = (madd::<FMA>(dx, dx, madd::<FMA>(dy, dy, dz * dz)) <= *r2) as u32;
         }
