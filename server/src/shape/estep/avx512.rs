@@ -34,7 +34,7 @@ fn tail_mask(o: usize, len: usize) -> __mmask16 {
 /// by `vscalefps` and the cut a zeroing mask on the product.
 #[target_feature(enable = "avx512f")]
 #[inline]
-fn weighted_exp2_neg_f32x16(w: __m512, t: __m512) -> __m512 {
+pub(super) fn weighted_exp2_neg_f32x16(w: __m512, t: __m512) -> __m512 {
     let cut = _mm512_set1_ps(EXP2_CUT_F32);
     let above = _mm512_cmp_ps_mask::<_CMP_GE_OQ>(t, cut);
     // Clamped before the series, as the AVX2 kernel does: the zeroing mask
