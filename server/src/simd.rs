@@ -108,6 +108,23 @@ pub(crate) fn sticky_fp_flags<R>(f: impl FnOnce() -> R) -> (R, u32) {
     (r, csr & FLAGS)
 }
 
+/// Unmasks (`trap`) or masks again MXCSR's denormal-operand exception on
+/// this thread: unmasked, the next instruction that reads a subnormal
+/// operand raises SIGFPE (for finding it under a debugger; see
+/// `a_registration_computes_no_subnormal_numbers`).
+#[cfg(all(test, target_arch = "x86_64"))]
+pub(crate) fn trap_subnormal_operands(trap: bool) {
+    const DENORMAL_MASK: u32 = 0x100;
+    let mut csr = 0u32;
+    // SAFETY: as in `sticky_fp_flags`; changes the status flags and the
+    // denormal-operand mask bit, nothing else.
+    unsafe {
+        std::arch::asm!("stmxcsr [{}]", in(reg) &mut csr, options(nostack));
+        csr = if trap { csr & !(DENORMAL_MASK | 0x3F) } else { csr | DENORMAL_MASK };
+        std::arch::asm!("ldmxcsr [{}]", in(reg) &csr, options(nostack));
+    }
+}
+
 /// MXCSR's denormal-operand and underflow flags.
 #[cfg(all(test, target_arch = "x86_64"))]
 pub(crate) const SUBNORMAL_FLAGS: u32 = 0x02 | 0x10;

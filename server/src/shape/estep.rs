@@ -8,7 +8,10 @@
 //! - truncated: once σ is small, pairs farther than `cutoff_sigmas`·σ are
 //!   negligible (e^{-32} at 8σ); a uniform grid over X finds the pairs that
 //!   matter (see `grid.rs` for why not a k-d tree), and a Verlet neighbour
-//!   list keeps them over the iterations in which the model moves little.
+//!   list keeps them over the iterations in which the model moves little;
+//!   or (`EStep::blocked`, the registration's small sets) whole blocks of
+//!   nearby moving points are skipped by groups of nearby data points
+//!   (`surfel`'s kernels with round components).
 
 use super::fastexp::{exp2_neg_f32, exp_neg, madd, EXP2_CUT_F32, EXP2_SERIES_F32};
 use super::grid::RadiusGrid;
@@ -70,6 +73,10 @@ pub struct EStep {
     /// bounding radius; below it, the pairs that matter are few enough that
     /// finding them beats evaluating all of them.
     pub truncate_below: f64,
+    /// Truncated E-steps skip whole blocks of nearby moving points beyond
+    /// the cutoff from groups of nearby data points (`surfel`'s kernels,
+    /// round components, f32) instead of listing the pairs within it.
+    pub blocked: bool,
     /// Evaluate the dense sums in f32 (twice the SIMD lanes). For fits that
     /// need no more (registration); CPD keeps f64 to agree with its peers.
     pub single_precision: bool,
@@ -106,6 +113,7 @@ impl EStep {
             x_radius,
             cutoff_sigmas: CUTOFF_SIGMAS,
             truncate_below: 0.5,
+            blocked: false,
             single_precision: false,
             f32buf: F32Buffers::default(),
             parallel_rows: false,
@@ -139,6 +147,10 @@ impl EStep {
         let (m, n) = (y.len(), self.x.len());
         out.reset(m, n);
         if m == 0 || n == 0 {
+            return;
+        }
+        if self.blocked && self.truncates(sigma2) {
+            self.run_round(y, weights, sigma2, w, out);
             return;
         }
         let c = outlier_constant(sigma2, w, m, n);

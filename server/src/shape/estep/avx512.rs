@@ -70,7 +70,7 @@ fn fold_to_eight(v: __m512) -> [f32; LANES] {
 /// The sum of a vector's lanes in double precision.
 #[target_feature(enable = "avx512f")]
 #[inline]
-fn lane_sum_f64(v: __m512) -> f64 {
+pub(super) fn lane_sum_f64(v: __m512) -> f64 {
     let mut sum = 0.0;
     for l in fold_to_eight(v) {
         sum += l as f64;
