@@ -629,6 +629,27 @@ mod tests {
         (out, sums)
     }
 
+    /// A kernel's f32 sums against f64 ones: likelihood, P1, PX and Pᵀ1.
+    fn assert_posteriors_near(out: &Posteriors, want: &Posteriors, simd: Simd) {
+        let nll = want.neg_log_likelihood;
+        assert!(
+            (out.neg_log_likelihood - nll).abs() < 1e-5 * nll.abs(),
+            "{simd:?}: {} vs {nll}",
+            out.neg_log_likelihood
+        );
+        assert!((out.np - want.np).abs() < 1e-4 * want.np);
+        assert!(out.p1.len() == want.p1.len() && out.px.len() == want.px.len() && out.pt1.len() == want.pt1.len());
+        for (i, (p1, px)) in out.p1.iter().zip(&out.px).enumerate() {
+            assert!((p1 - want.p1[i]).abs() < 1e-4 + 1e-3 * want.p1[i], "{simd:?}: p1[{i}]");
+            for d in 0..3 {
+                assert!((px[d] - want.px[i][d]).abs() < 1e-5 + 1e-3 * want.px[i][d].abs(), "{simd:?}: px[{i}]");
+            }
+        }
+        for (j, pt1) in out.pt1.iter().enumerate() {
+            assert!((pt1 - want.pt1[j]).abs() < 1e-4, "{simd:?}: pt1[{j}]");
+        }
+    }
+
     /// Points on a wavy sheet (the data) and a sparser, shifted copy with normals (the model).
     fn sheet(n: usize, seed: u64, shift: f64) -> (Vec<P3>, Vec<P3>) {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
@@ -656,18 +677,7 @@ mod tests {
         let mut out = Posteriors::default();
         let sums = e.run_surfels(&y, &s, Some(&pi), 0.1, &mut out);
         let (want, want_sums) = reference(&x, &y, &s, &pi, 0.1);
-        let nll = want.neg_log_likelihood;
-        assert!((out.neg_log_likelihood - nll).abs() < 1e-5 * nll.abs(), "{} vs {nll}", out.neg_log_likelihood);
-        assert!((out.np - want.np).abs() < 1e-4 * want.np);
-        for i in 0..y.len() {
-            assert!((out.p1[i] - want.p1[i]).abs() < 1e-4 + 1e-3 * want.p1[i], "p1[{i}]");
-            for d in 0..3 {
-                assert!((out.px[i][d] - want.px[i][d]).abs() < 1e-5 + 1e-3 * want.px[i][d].abs(), "px[{i}]");
-            }
-        }
-        for j in 0..x.len() {
-            assert!((out.pt1[j] - want.pt1[j]).abs() < 1e-4, "pt1[{j}]");
-        }
+        assert_posteriors_near(&out, &want, simd);
         for (got, exp) in [(sums.along_normals, want_sums.along_normals), (sums.total, want_sums.total)] {
             assert!((got - exp).abs() < 1e-3 * exp, "residual sums {sums:?} vs {want_sums:?}");
         }
@@ -705,22 +715,7 @@ mod tests {
             assert!(e.truncates(sigma2));
             let mut out = Posteriors::default();
             e.run_weighted(&y, Some(&pi), sigma2, 0.1, &mut out);
-            let nll = want.neg_log_likelihood;
-            assert!(
-                (out.neg_log_likelihood - nll).abs() < 1e-5 * nll.abs(),
-                "{simd:?}: {} vs {nll}",
-                out.neg_log_likelihood
-            );
-            assert!((out.np - want.np).abs() < 1e-4 * want.np);
-            for i in 0..y.len() {
-                assert!((out.p1[i] - want.p1[i]).abs() < 1e-4 + 1e-3 * want.p1[i], "{simd:?}: p1[{i}]");
-                for d in 0..3 {
-                    assert!((out.px[i][d] - want.px[i][d]).abs() < 1e-5 + 1e-3 * want.px[i][d].abs(), "px[{i}]");
-                }
-            }
-            for j in 0..x.len() {
-                assert!((out.pt1[j] - want.pt1[j]).abs() < 1e-4, "{simd:?}: pt1[{j}]");
-            }
+            assert_posteriors_near(&out, &want, simd);
         }
     }
 
