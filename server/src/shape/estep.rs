@@ -144,13 +144,14 @@ impl EStep {
     /// weights are all ones). A registration gives centroids the camera cannot
     /// see a small weight: they cannot have produced an observation.
     pub fn run_weighted(&mut self, y: &[P3], weights: Option<&[f64]>, sigma2: f64, w: f64, out: &mut Posteriors) {
+        if self.blocked && self.truncates(sigma2) {
+            // It zeroes `out` itself and finishes the sums.
+            self.run_round(y, weights, sigma2, w, out);
+            return;
+        }
         let (m, n) = (y.len(), self.x.len());
         out.reset(m, n);
         if m == 0 || n == 0 {
-            return;
-        }
-        if self.blocked && self.truncates(sigma2) {
-            self.run_round(y, weights, sigma2, w, out);
             return;
         }
         let c = outlier_constant(sigma2, w, m, n);
