@@ -9,6 +9,7 @@ use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 /// position it was seen from.
 pub struct View {
     pub cloud: Vec<Point3<f64>>,
+    #[allow(dead_code)]
     pub viewpoint: [f64; 3],
     /// The instance's ground-truth keypoints in the world frame.
     #[allow(dead_code)]
