@@ -213,7 +213,7 @@ impl<V> DenseCells<V> {
     fn key(&self, i: usize) -> u64 {
         let i = i as u64;
         let [d0, d1, _] = self.dims;
-        i % d0 | (i / d0 % d1) << 21 | (i / (d0 * d1)) << 42
+        (i % d0) | ((i / d0 % d1) << 21) | ((i / (d0 * d1)) << 42)
     }
 
     /// Marks cell `i` occupied; whether it was not before.
