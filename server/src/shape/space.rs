@@ -646,25 +646,17 @@ impl LinearModel {
         self.base.is_empty()
     }
     pub fn evaluate(&self, latent: &[f64]) -> Vec<P3> {
-        let mut out = self.base.clone();
-        for (b, l) in self.basis.iter().zip(latent) {
-            for (o, bi) in out.iter_mut().zip(b) {
-                o[0] += l * bi[0];
-                o[1] += l * bi[1];
-                o[2] += l * bi[2];
-            }
-        }
+        let mut out = Vec::with_capacity(self.len());
+        self.evaluate_into(latent, &mut out);
         out
     }
+    /// base + Σⱼ ℓⱼ basisⱼ into `out`, mode after mode (EM evaluates the
+    /// model every iteration: 9 modes × 800 points on the polish level).
     pub fn evaluate_into(&self, latent: &[f64], out: &mut Vec<P3>) {
         out.clear();
         out.extend_from_slice(&self.base);
         for (b, l) in self.basis.iter().zip(latent) {
-            for (o, bi) in out.iter_mut().zip(b) {
-                o[0] += l * bi[0];
-                o[1] += l * bi[1];
-                o[2] += l * bi[2];
-            }
+            add_scaled(out.as_flattened_mut(), *l, b.as_flattened());
         }
     }
     /// The sub-model of the given point indices.
@@ -673,6 +665,43 @@ impl LinearModel {
             base: idx.iter().map(|&i| self.base[i]).collect(),
             basis: self.basis.iter().map(|b| idx.iter().map(|&i| b[i]).collect()).collect(),
         }
+    }
+}
+
+/// out += l·b, element by element. The crate is built for baseline x86-64
+/// (two-lane vectors); where the CPU has them the same loop is compiled for
+/// AVX2 or AVX-512 too. Each element is one product and one sum, unfused, so
+/// the result is the same bit for bit on every level.
+fn add_scaled(out: &mut [f64], l: f64, b: &[f64]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use crate::simd::Simd;
+        // SAFETY: `Simd::detect` found the features the functions are compiled for.
+        match Simd::detect(Simd::Avx512) {
+            Simd::Avx512 => return unsafe { add_scaled_avx512(out, l, b) },
+            Simd::Avx2 => return unsafe { add_scaled_avx2(out, l, b) },
+            Simd::Portable => {}
+        }
+    }
+    add_scaled_body(out, l, b)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn add_scaled_avx512(out: &mut [f64], l: f64, b: &[f64]) {
+    add_scaled_body(out, l, b)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn add_scaled_avx2(out: &mut [f64], l: f64, b: &[f64]) {
+    add_scaled_body(out, l, b)
+}
+
+#[inline(always)]
+fn add_scaled_body(out: &mut [f64], l: f64, b: &[f64]) {
+    for (o, v) in out.iter_mut().zip(b) {
+        *o += l * v;
     }
 }
 
@@ -729,4 +758,42 @@ fn pca(w_rows: &[Vec<f64>], v_rows: &[Vec<f64>], explained: f64, max_modes: usiz
 /// FNV-1a, 64-bit: enough to catch corruption (not an authenticity check).
 fn fnv1a(bytes: &[u8]) -> u64 {
     bytes.iter().fold(0xcbf29ce484222325u64, |h, b| (h ^ *b as u64).wrapping_mul(0x100000001b3))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The model evaluates the same bit for bit on every vector level.
+    #[test]
+    fn scaled_sums_are_the_same_on_every_level() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(8);
+        for n in [0, 3, 8, 31, 2400] {
+            let base: Vec<f64> = (0..n).map(|_| rng.random::<f64>() - 0.5).collect();
+            let b: Vec<f64> = (0..n).map(|_| rng.random::<f64>() * 0.1).collect();
+            let l = rng.random::<f64>() * 3.0 - 1.5;
+            let mut want = base.clone();
+            add_scaled_body(&mut want, l, &b);
+            let mut got = base.clone();
+            add_scaled(&mut got, l, &b);
+            assert_eq!(
+                got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                want.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+            );
+            #[cfg(target_arch = "x86_64")]
+            for level in crate::simd::Simd::available() {
+                let mut got = base.clone();
+                // SAFETY: `available` lists only levels this CPU runs.
+                unsafe {
+                    match level {
+                        crate::simd::Simd::Avx512 => add_scaled_avx512(&mut got, l, &b),
+                        crate::simd::Simd::Avx2 => add_scaled_avx2(&mut got, l, &b),
+                        crate::simd::Simd::Portable => add_scaled_body(&mut got, l, &b),
+                    }
+                }
+                assert_eq!(got, want, "{level:?}, n = {n}");
+            }
+        }
+    }
 }
