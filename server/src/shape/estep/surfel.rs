@@ -188,7 +188,12 @@ fn bounding_sphere<'p>(points: impl Iterator<Item = &'p P3> + Clone) -> [f32; 4]
 /// into runs of `leaf` left some runs spanning the curve's jumps: their
 /// spheres reached over most of a mug.)
 fn spatial_order(p: &[P3], leaf: usize) -> Vec<usize> {
-    fn split(p: &[P3], idx: &mut [usize], leaf: usize) {
+    /// Each cut selects on (coordinate, index) pairs copied out of the
+    /// points: the comparisons read neighbouring memory instead of following
+    /// an index into the points. The pairs compare exactly as the indices
+    /// did, so the order is the same. Measured (`bench_register mug` with a
+    /// timer here): 36-39 → 31-32 µs an order, about twenty orders a fit.
+    fn split(p: &[P3], idx: &mut [usize], leaf: usize, keyed: &mut Vec<(f64, usize)>) {
         if idx.len() <= leaf {
             return;
         }
@@ -201,13 +206,18 @@ fn spatial_order(p: &[P3], leaf: usize) -> Vec<usize> {
         }
         let axis = (0..3).max_by(|&a, &b| (hi[a] - lo[a]).total_cmp(&(hi[b] - lo[b]))).unwrap_or(0);
         let cut = (idx.len().div_ceil(leaf) / 2).max(1) * leaf;
-        idx.select_nth_unstable_by(cut, |&a, &b| p[a][axis].total_cmp(&p[b][axis]).then(a.cmp(&b)));
+        keyed.clear();
+        keyed.extend(idx.iter().map(|&i| (p[i][axis], i)));
+        keyed.select_nth_unstable_by(cut, |a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        for (i, k) in idx.iter_mut().zip(keyed.iter()) {
+            *i = k.1;
+        }
         let (left, right) = idx.split_at_mut(cut);
-        split(p, left, leaf);
-        split(p, right, leaf);
+        split(p, left, leaf, keyed);
+        split(p, right, leaf, keyed);
     }
     let mut order: Vec<usize> = (0..p.len()).collect();
-    split(p, &mut order, leaf.max(1));
+    split(p, &mut order, leaf.max(1), &mut Vec::with_capacity(p.len()));
     order
 }
 
