@@ -5,7 +5,7 @@
 //! expected answers come from `graspd register` on the same files.
 
 use graspd_client::protocol::{self as proto, Point};
-use graspd_client::{cloudfile, Client, ClientOptions, Cloud, StatusCode, WaitMode};
+use graspd_client::{cloudfile, Client, ClientOptions, Cloud, CloudOptions, StatusCode, WaitMode};
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -28,6 +28,8 @@ struct Fixture {
     views: Vec<(PathBuf, Vec<[f32; 3]>, serde_json::Value)>,
     /// `graspd grasp --json` on the first view.
     grasp: serde_json::Value,
+    /// `graspd register --table-z 0 --json` on the first view (the mug stands on z = 0).
+    on_table: serde_json::Value,
 }
 
 fn fixture() -> &'static Fixture {
@@ -56,7 +58,9 @@ fn fixture() -> &'static Fixture {
             views.push((out, points, expected));
         }
         let grasp = graspd_json(&["grasp", "--category", "mug", "--cloud", views[0].0.to_str().unwrap(), "--json"]);
-        Fixture { _dir: dir, views, grasp }
+        let first = views[0].0.to_str().unwrap();
+        let on_table = graspd_json(&["register", "--category", "mug", "--cloud", first, "--table-z", "0", "--json"]);
+        Fixture { _dir: dir, views, grasp, on_table }
     })
 }
 
@@ -240,14 +244,19 @@ fn concurrent_clients_get_the_same_answers_as_the_cli() {
         t.join().expect("client thread");
     }
     let mut c = d.client();
+    // A given table is the registration's support, as `graspd register --table-z` makes it.
+    let on_table = CloudOptions { table: Some(graspd_client::Table::At(0.0)), ..CloudOptions::default() };
+    let r = c.register_with("mug", &f.views[0].1, &on_table, TIMEOUT).unwrap();
+    assert_same_registration(&r, &f.on_table);
+    assert_ne!(f.on_table["keypoints"], f.views[0].2["keypoints"], "the table changed nothing");
     let cats = c.categories().unwrap();
     assert_eq!(cats.len(), 1);
     assert_eq!(cats[0].name, "mug");
     assert_eq!(cats[0].keypoints.len(), f.views[0].2["keypoints"].as_array().unwrap().len());
     let s = c.stats().unwrap();
     let reg = &s.methods[proto::Method::Register as usize];
-    assert_eq!(reg.requests, 12);
-    assert_eq!(reg.by_status[0], 12);
+    assert_eq!(reg.requests, 13);
+    assert_eq!(reg.by_status[0], 13);
     assert!(reg.compute_p50_us > 0.0 && reg.latency_p50_us >= reg.compute_p50_us);
     // graspctl reads the same daemon (same JSON shape as `graspd register`: keypoints, pose, fit).
     // graspctl is another package's binary: `cargo test` does not rebuild it,

@@ -254,7 +254,9 @@ pub struct CloudOptions {
     /// The camera's origin in the cloud's frame, when known ([0, 0, 0] for a cloud in the camera frame).
     pub viewpoint: Option<[f32; 3]>,
     pub seed: u64,
-    /// Grasp: table plane (None: AUTO).
+    /// Grasp: table plane (None: AUTO). `At(z)` in a z-up frame is also the
+    /// plane the tool rests on: Register and Grasp hold the registered
+    /// shape's lowest point on it.
     pub table: Option<Table>,
     /// Grasp: pre-grasp back-off, m (None: daemon default).
     pub pregrasp_backoff_m: Option<f32>,

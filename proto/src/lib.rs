@@ -145,14 +145,16 @@ impl core::fmt::Display for StatusCode {
     }
 }
 
-/// Values of [`RequestHeader::table_mode`] (Grasp).
+/// Values of [`RequestHeader::table_mode`] (Grasp; GIVEN also Register).
 pub mod table_mode {
-    /// Table plane at the lowest point of the cloud or of the registered
-    /// shape, when the cloud's frame is z up (`up_in_cloud` = (0, 0, 1)); no
-    /// table otherwise.
+    /// Grasp: table plane at the lowest point of the cloud or of the
+    /// registered shape, when the cloud's frame is z up (`up_in_cloud` = (0,
+    /// 0, 1)); no table otherwise. The registration is not told of it.
     pub const AUTO: u32 = 0;
     pub const NONE: u32 = 1;
-    /// Table plane z = `table_z_m` in the cloud's frame.
+    /// Table plane z = `table_z_m` in the cloud's frame. When that frame is z
+    /// up, the tool is taken to rest on it: Register and Grasp hold the
+    /// registered shape's lowest point on the plane.
     pub const GIVEN: u32 = 2;
 }
 
@@ -262,9 +264,9 @@ pub struct RequestHeader {
     /// World up direction expressed in the cloud's frame (need not be unit
     /// length); all zero = unknown. (0, 0, 1) for a z-up world-frame cloud.
     pub up_in_cloud: [f32; 3],
-    /// Grasp: one of [`table_mode`].
+    /// Grasp, and Register with GIVEN: one of [`table_mode`].
     pub table_mode: u32,
-    /// Grasp with table_mode GIVEN: table top height in the cloud's frame, metres.
+    /// table_mode GIVEN: table top height in the cloud's frame, metres.
     pub table_z_m: f32,
     /// Grasp: pre-grasp back-off along the palm normal, metres; 0 = daemon default.
     pub pregrasp_backoff_m: f32,

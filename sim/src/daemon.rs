@@ -262,9 +262,18 @@ impl EngineBackend {
         let err = |what: &str, e: &dyn std::fmt::Display| SimError::Plan { reason: format!("{what}: {e}") };
         let points: Vec<Point3<f64>> =
             cloud.iter().map(|p| Point3::new(p[0] as f64, p[1] as f64, p[2] as f64)).collect();
+        // What the daemon makes of the request's header (`engine::register_options`):
+        // a given table in a z-up frame is also the registration's support.
+        let up = opts.up.map(|u| u.map(f64::from));
+        let z_up = up.is_some_and(|[x, y, z]| z > 0.0 && x * x + y * y <= 1e-18 * z * z);
+        let support_height = match opts.table {
+            Some(Table::At(z)) if z_up => Some(z as f64),
+            _ => None,
+        };
         let register = RegisterOptions {
-            up: opts.up.map(|u| u.map(f64::from)),
+            up,
             viewpoint: opts.viewpoint.map(|u| u.map(f64::from)),
+            support_height,
             seed: opts.seed,
             ..RegisterOptions::default()
         };

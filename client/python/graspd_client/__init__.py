@@ -301,14 +301,20 @@ class Client:
         return {"uptime_s": s.uptime_ns * 1e-9, "rss_bytes": s.rss_bytes, "clients_connected": s.clients_connected,
                 "queued": s.queued, "methods": methods}
 
-    def register(self, category, points, *, timeout_s=30.0, **cloud):
+    def register(self, category, points, *, timeout_s=30.0, table=None, **cloud):
         """Registers one segmented partial view of a tool: latent shape, pose, fit, keypoints.
 
+        ``table``: the z of the table top the tool rests on, in the cloud's
+        frame (metres; z-up clouds), when known: the registration then holds
+        the tool's lowest point on it. None: not known.
         ``cloud`` options: ``cloud_frame`` (default "world"), ``up`` (world up in
         the cloud's frame, default (0, 0, 1); None = unknown), ``viewpoint`` (the
         camera's origin in the cloud's frame, None = unknown), ``seed`` (0).
         """
         header = self._cloud_header(category, **cloud)
+        if table is not None:
+            header.table_mode = proto.TABLE_GIVEN
+            header.table_z_m = float(table)
         r = self._call("register", proto.Point, proto.RegisterResponse, header, points, timeout_s)
         out = _registration(r, proto.text(header.cloud_frame))
         out["category"] = category
@@ -319,7 +325,8 @@ class Client:
         """Registration, the transferred grasp and the pre-grasp in one round trip.
 
         ``table``: "auto" (at the lowest point, z-up clouds), None (no table) or
-        the table top's z in the cloud's frame (metres). Pre-grasp options 0 =
+        the table top's z in the cloud's frame (metres; the registration then
+        also holds the tool's lowest point on it). Pre-grasp options 0 =
         the daemon's defaults. ``cloud`` options as :meth:`register`.
         """
         header = self._cloud_header(category, **cloud)

@@ -95,7 +95,9 @@ struct CloudArgs {
     /// The camera's origin in the cloud's frame, "x,y,z" ("0,0,0" for a cloud in the camera frame).
     #[arg(long)]
     viewpoint: Option<String>,
-    /// Grasp: table top height z in the cloud's frame (default: from the cloud when z is up).
+    /// Table top height z in the cloud's frame, the tool resting on it: the
+    /// registration holds its lowest point there (Register and Grasp, z-up
+    /// clouds). Grasp's default: a table from the cloud when z is up.
     #[arg(long, allow_hyphen_values = true)]
     table_z: Option<f32>,
     /// Grasp: no table plane.

@@ -33,6 +33,9 @@ pub enum EvalCommand {
         /// Do not tell the registration where the camera is.
         #[arg(long)]
         unknown_viewpoint: bool,
+        /// Do not tell the registration the table's height (the tool resting on it).
+        #[arg(long)]
+        unknown_table: bool,
         #[arg(long, default_value_t = 7)]
         seed: u64,
         /// Registration options as a JSON object laid over the defaults
@@ -126,6 +129,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             on_side,
             full_surface,
             unknown_viewpoint,
+            unknown_table,
             seed,
             register_options,
             split,
@@ -154,6 +158,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                 on_side,
                 full_surface,
                 known_viewpoint: !unknown_viewpoint,
+                known_table: !unknown_table,
                 seed,
                 register,
             };
@@ -172,7 +177,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             let out = serde_json::json!({
                 "category": category.name(),
                 "views": views,
-                "noise_mm": noise_mm, "outliers": outliers, "scale_jitter": scale_jitter, "on_side": on_side, "full_surface": full_surface, "known_viewpoint": !unknown_viewpoint,
+                "noise_mm": noise_mm, "outliers": outliers, "scale_jitter": scale_jitter, "on_side": on_side, "full_surface": full_surface, "known_viewpoint": !unknown_viewpoint, "known_table": !unknown_table,
                 "test": splits.iter().position(|s| *s == Split::Test).map(|i| &reports[i]),
                 "train": splits.iter().position(|s| *s == Split::Train).map(|i| &reports[i]),
             });

@@ -45,8 +45,9 @@ pub struct GraspArgs {
     cloud: PathBuf,
     #[command(flatten)]
     view: ViewArgs,
-    /// Table top height in the cloud's frame (z up). Default: the lowest point of the
-    /// cloud or of the registered shape, whichever is lower.
+    /// Table top height in the cloud's frame (z up); the registration then also
+    /// holds the tool's lowest point on it. Default: the lowest point of the
+    /// cloud or of the registered shape, whichever is lower (grasp only).
     #[arg(long, allow_hyphen_values = true)]
     table_z: Option<f64>,
     /// No table plane.
@@ -303,7 +304,10 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
     let model = TransferModel::new(&registrar.space, &demo_keypoints, &canonical.mesh);
     let load_ms = 1e3 * t_load.elapsed().as_secs_f64();
 
-    let reg = registrar.register(&cloud, &RegisterOptions { up, viewpoint, seed: a.seed, ..Default::default() })?;
+    // A given table is also the registration's support (in a z-up frame).
+    let support_height = if a.no_table { None } else { super::register::support_height(up, a.table_z).ok().flatten() };
+    let reg = registrar
+        .register(&cloud, &RegisterOptions { up, viewpoint, support_height, seed: a.seed, ..Default::default() })?;
     let tool = TransferredTool::from_registration(&registrar, &reg, &model)?;
 
     let mut warnings = Vec::new();

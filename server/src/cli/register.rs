@@ -14,6 +14,10 @@ pub struct RegisterArgs {
     cloud: PathBuf,
     #[command(flatten)]
     view: ViewArgs,
+    /// The tool rests on a table whose top is at this z (cloud frame, z up,
+    /// metres): the registration holds the tool's lowest point on it.
+    #[arg(long, allow_hyphen_values = true)]
+    table_z: Option<f64>,
     /// Write the completed shape (cloud frame) here.
     #[arg(long)]
     shape_out: Option<PathBuf>,
@@ -49,6 +53,19 @@ impl ViewArgs {
     }
 }
 
+/// The registration's support plane from `--table-z`: a table top at z in
+/// a z-up cloud frame (the plane across `up`).
+pub fn support_height(up: Option<[f64; 3]>, table_z: Option<f64>) -> Result<Option<f64>, String> {
+    let Some(z) = table_z else { return Ok(None) };
+    if !z.is_finite() {
+        return Err(format!("--table-z {z} is not finite"));
+    }
+    match up {
+        Some([x, y, uz]) if uz > 0.0 && x * x + y * y <= 1e-18 * uz * uz => Ok(Some(z)),
+        _ => Err("--table-z needs a z-up cloud frame (--up 0,0,1)".to_owned()),
+    }
+}
+
 fn parse_up(s: &str) -> Result<Option<[f64; 3]>, String> {
     if s.eq_ignore_ascii_case("none") {
         return Ok(None);
@@ -80,7 +97,8 @@ pub fn run(a: RegisterArgs) -> CliResult {
     let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
     let registrar = Registrar::new(space);
     let (up, viewpoint) = a.view.parse()?;
-    let opts = RegisterOptions { up, viewpoint, seed: a.seed, ..Default::default() };
+    let support_height = support_height(up, a.table_z)?;
+    let opts = RegisterOptions { up, viewpoint, support_height, seed: a.seed, ..Default::default() };
     let reg = registrar.register(&cloud, &opts)?;
     if let Some(p) = &a.shape_out {
         graspd::io::write_cloud(p, &registrar.completed_shape(&reg))?;

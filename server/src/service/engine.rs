@@ -330,7 +330,19 @@ pub fn register_options(h: &proto::RequestHeader) -> Result<RegisterOptions, Sta
     } else {
         None
     };
-    Ok(RegisterOptions { up, viewpoint, seed: h.seed, ..Default::default() })
+    // A table given in a z-up frame is the plane the tool rests on: the
+    // registration holds the tool's lowest point on it (`support_height`).
+    let z_up = up.is_some_and(|[x, y, z]| z > 0.0 && x * x + y * y <= 1e-18 * z * z);
+    let support_height = match h.table_mode {
+        proto::table_mode::GIVEN if z_up => {
+            if !h.table_z_m.is_finite() {
+                return Err(Status::invalid(format!("table_z_m {} is not finite", h.table_z_m)));
+            }
+            Some(h.table_z_m as f64)
+        }
+        _ => None,
+    };
+    Ok(RegisterOptions { up, viewpoint, support_height, seed: h.seed, ..Default::default() })
 }
 
 /// The wire's Registration of `reg`, a fit of `points` points given the
@@ -391,6 +403,21 @@ mod tests {
         h.up_in_cloud = [0.0, 0.0, 2.0];
         assert_eq!(register_options(&h).unwrap().up, Some([0.0, 0.0, 2.0]));
         h.up_in_cloud = [f32::NAN, 0.0, 1.0];
+        assert_eq!(register_options(&h).unwrap_err().code, StatusCode::InvalidArgument);
+    }
+
+    #[test]
+    fn a_given_table_in_a_z_up_frame_supports_the_tool() {
+        let mut h = proto::RequestHeader::zeroed();
+        h.up_in_cloud = [0.0, 0.0, 1.0];
+        h.table_z_m = 0.75;
+        assert_eq!(register_options(&h).unwrap().support_height, None, "AUTO: the cloud's lowest point is no support");
+        h.table_mode = proto::table_mode::GIVEN;
+        assert_eq!(register_options(&h).unwrap().support_height, Some(0.75));
+        h.up_in_cloud = [0.0, 1.0, 0.0];
+        assert_eq!(register_options(&h).unwrap().support_height, None, "the plane z = 0.75 is not across this up");
+        h.up_in_cloud = [0.0, 0.0, 1.0];
+        h.table_z_m = f32::NAN;
         assert_eq!(register_options(&h).unwrap_err().code, StatusCode::InvalidArgument);
     }
 }

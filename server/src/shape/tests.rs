@@ -652,3 +652,55 @@ fn a_long_handle_in_view_is_fitted_to_its_end() {
     // Here: 4.0 mm; 29.7 mm without re-annealing (with 9 modes 4.4 and 28.6).
     assert!(annealed < 8.0, "handle end {annealed:.1} mm off (median; {settled:.1} mm without re-annealing)");
 }
+
+#[test]
+fn a_known_table_holds_the_tool_on_it() {
+    // A view from above shows nothing of a tool's underside: without the
+    // table's height the completed shape's lowest point floats or sinks by
+    // the latent's and the scale's play; with it (`support_height`) the
+    // lowest point touches the table and the keypoints follow.
+    let reg = hammer_registrar();
+    let family = tools::family(Category::Hammer).unwrap();
+    let (mut gap, mut errs) = ([Vec::new(), Vec::new()], [Vec::new(), Vec::new()]);
+    for (k, inst) in family.iter().filter(|i| i.split == Split::Test).enumerate() {
+        let (lo, hi) = inst.mesh.aabb().unwrap();
+        for (v, yaw) in [0.7f64, 2.9, 5.0].iter().enumerate() {
+            let pose = on_table(*yaw);
+            let centre = pose * Point3::from((lo.coords + hi.coords) / 2.0);
+            let (cloud, camera) = capture(&inst.mesh, &pose, centre, 3 * k + v, 11);
+            let viewpoint = Some(camera.translation.vector.into());
+            for (i, support_height) in [None, Some(0.0)].into_iter().enumerate() {
+                let r =
+                    reg.register(&cloud, &RegisterOptions { viewpoint, support_height, ..Default::default() }).unwrap();
+                let lowest = reg.completed_shape(&r).iter().map(|p| p.z).fold(f64::INFINITY, f64::min);
+                gap[i].push(lowest.abs() * 1e3);
+                for (p, t) in r.keypoints.iter().zip(&inst.keypoints) {
+                    errs[i].push((Vector3::from(p.position) - (pose * Point3::from(t.position)).coords).norm() * 1e3);
+                }
+            }
+        }
+    }
+    let median = |v: &[f64]| {
+        let mut v = v.to_vec();
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let largest = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
+    eprintln!(
+        "lowest point off the table, median / largest: {:.2} / {:.2} mm without, {:.2} / {:.2} with; keypoints median {:.2} / {:.2} mm",
+        median(&gap[0]),
+        largest(&gap[0]),
+        median(&gap[1]),
+        largest(&gap[1]),
+        median(&errs[0]),
+        median(&errs[1])
+    );
+    assert!(largest(&gap[1]) < 0.8, "with the table, the lowest point {:?} mm off it", gap[1]);
+    assert!(median(&gap[1]) < 0.5 * median(&gap[0]), "lowest point off the table: {:?} → {:?} mm", gap[0], gap[1]);
+    assert!(
+        median(&errs[1]) < median(&errs[0]),
+        "keypoint median {:.2} → {:.2} mm",
+        median(&errs[0]),
+        median(&errs[1])
+    );
+}

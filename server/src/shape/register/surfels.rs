@@ -8,7 +8,7 @@
 //! takes Gauss-Newton steps on it (a generalised EM: each step lowers the
 //! objective), and the latent its exact weighted least squares.
 
-use super::{dot_slices, Fit, LatentLevel, RegisterOptions, View, LOOSE_SCALE_PRIOR_STD};
+use super::{dot_slices, Fit, LatentLevel, RegisterOptions, Support, View, LOOSE_SCALE_PRIOR_STD};
 use crate::shape::cpd::Normalization;
 use crate::shape::estep::{dot, Posteriors, Surfels, P3};
 use crate::simd::clear_upper_state;
@@ -46,6 +46,7 @@ pub(super) fn em_surfels(
     x: &[P3],
     start: &Fit,
     prior: Option<&[f64]>,
+    support: Option<Support>,
     sigma2: f64,
     opts: &RegisterOptions,
     iters: usize,
@@ -63,6 +64,7 @@ pub(super) fn em_surfels(
     let mut y_world: Vec<P3> = Vec::with_capacity(m);
     let mut n_world: Vec<P3> = Vec::with_capacity(m);
     let mut weights = Vec::new();
+    let mut contact = Vec::new();
     // Each basis vector's component along the point's canonical normal (the
     // latent's normal equations need Bᵢᵀnᵢ); columns over the points.
     let basis_normal: Vec<Vec<f64>> =
@@ -86,8 +88,17 @@ pub(super) fn em_surfels(
         // pose and the latent with them.
         (tangent2, normal2) = residuals.variances(post.np);
         let (a, b) = (1.0 / tangent2, 1.0 / normal2 - 1.0 / tangent2);
-        pose_steps(&mut pose, &post, &y_model, normals, (a, b), opts, norm);
+        // The support at the precision of the view's depth (σ_n), K = weight·Np.
+        let touching = support.and_then(|sp| {
+            sp.contact(&pose, &y_model, &mut contact).map(|c| (sp, c.target, sp.weight * post.np / normal2))
+        });
+        let held = touching.map(|(support, target, k)| Held { support, contact: &contact, target, k });
+        pose_steps(&mut pose, &post, &y_model, normals, (a, b), held, opts, norm);
         if let Some(var) = prior {
+            let row = touching.map(|(sp, target, k)| {
+                let (g, e) = sp.latent_row(step, &pose, &contact, target);
+                (g, e, k)
+            });
             if let Some(l) = latent_step(
                 step,
                 &basis_normal,
@@ -95,6 +106,7 @@ pub(super) fn em_surfels(
                 &post,
                 &pose,
                 (a, b),
+                row.as_ref().map(|(g, e, k)| (g.as_slice(), *e, *k)),
                 PRIOR_SCALE * opts.latent_prior_weight,
                 var,
             ) {
@@ -111,16 +123,29 @@ pub(super) fn em_surfels(
     Fit { pose, latent, sigma2, nll, iterations: it }
 }
 
+/// The support's term at one iteration: the model's contact points
+/// (`Support::contact`), the height their mean should have, and its weight
+/// K (a precision: weight × Np / σ_n²).
+#[derive(Clone, Copy)]
+struct Held<'a> {
+    support: Support,
+    contact: &'a [usize],
+    target: f64,
+    k: f64,
+}
+
 /// Gauss-Newton on rotation (a rotation vector on the left), log scale and
 /// translation, with the scale's Gaussian prior. The residual of point m,
 /// r = x̄ − s R y − t, moves by J·δ with J = [ [u]× | −u | −I ] (u = s R y);
 /// JᵀΛJ = a JᵀJ + b (Jᵀn)(Jᵀn)ᵀ, and Σ P1 JᵀJ comes from five sums.
+#[allow(clippy::too_many_arguments)]
 fn pose_steps(
     pose: &mut super::Pose,
     post: &Posteriors,
     y_model: &[P3],
     normals: &[P3],
     (a, b): (f64, f64),
+    held: Option<Held>,
     opts: &RegisterOptions,
     norm: &Normalization,
 ) {
@@ -159,6 +184,16 @@ fn pose_steps(
             h[(4 + d, 4 + d)] = sp;
         }
         let mut h = h * a + h_normal;
+        // The support: ½K·r² with r = target − up·(ū + t), ū the contact
+        // points' mean of s R y (`Support::contact`); r moves by upᵀJ(ū)δ.
+        if let Some(Held { support, contact, target, k }) = held {
+            let n = contact.len().max(1) as f64;
+            let u = contact.iter().map(|&i| pose.s * (pose.r * Vector3::from(y_model[i]))).sum::<Vector3<f64>>() / n;
+            let r = target - support.up.dot(&(u + pose.t));
+            let j = jt(&u, &support.up);
+            h += k * j * j.transpose();
+            g += k * r * j;
+        }
         if opts.estimate_scale {
             // ½(s·e^κ − s0)²/τ² about κ = 0.
             h[(3, 3)] += pose.s * pose.s / tau2;
@@ -200,6 +235,7 @@ fn latent_step(
     post: &Posteriors,
     pose: &super::Pose,
     (a, b): (f64, f64),
+    support: Option<(&[f64], f64, f64)>,
     prior_weight: f64,
     var: &[f64],
 ) -> Option<Vec<f64>> {
@@ -226,6 +262,15 @@ fn latent_step(
             e += 1;
         }
         am[(j, j)] += prior_weight / var[j];
+    }
+    // The support's rank-one term (`Support::latent_row`), at K·s² like the data's.
+    if let Some((gv, e, k)) = support {
+        for j in 0..q {
+            bv[(j, 0)] += k * s2 * gv[j] * e;
+            for l in 0..q {
+                am[(j, l)] += k * s2 * gv[j] * gv[l];
+            }
+        }
     }
     let sol = am.llt(Side::Lower).ok().map(|l| l.solve(&bv));
     clear_upper_state();
