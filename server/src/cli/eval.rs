@@ -68,6 +68,9 @@ pub enum EvalCommand {
         /// `eval transfer` does by default); without it the viewpoint is estimated.
         #[arg(long)]
         known_viewpoint: bool,
+        /// Tell the registration the table's height (the scan rests on it).
+        #[arg(long)]
+        known_table: bool,
         /// Registration options as a JSON object laid over the defaults (as for `eval transfer`).
         #[arg(long)]
         register_options: Option<String>,
@@ -80,7 +83,7 @@ pub enum EvalCommand {
 
 pub fn run(cmd: EvalCommand) -> CliResult {
     match cmd {
-        EvalCommand::Ycb { category, views, data, seed, known_viewpoint, register_options, json } => {
+        EvalCommand::Ycb { category, views, data, seed, known_viewpoint, known_table, register_options, json } => {
             let register = match register_options {
                 Some(j) => super::overlay_json(graspd::shape::RegisterOptions::default(), &j, "--register-options")?,
                 None => graspd::shape::RegisterOptions::default(),
@@ -105,6 +108,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                     views,
                     seed,
                     known_viewpoint,
+                    known_table,
                     &register,
                 )?);
             }
@@ -113,8 +117,8 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             } else {
                 for r in &reports {
                     println!(
-                        "{} ({} viewpoint): chamfer median {:.1} mm (p90 {:.1}), inliers median {:.2}, confident {:.0}%, scale median {:.2}, fit p50 {:.1} ms",
-                        r.category, if r.known_viewpoint { "known" } else { "estimated" }, r.chamfer_mm.median, r.chamfer_mm.p90, r.inlier_fraction.median, r.confident_fraction * 100.0, r.scale.median, r.fit_ms.median
+                        "{} ({} viewpoint{}): chamfer median {:.1} mm (p90 {:.1}), inliers median {:.2}, confident {:.0}%, scale median {:.2}, fit p50 {:.1} ms",
+                        r.category, if r.known_viewpoint { "known" } else { "estimated" }, if r.known_table { ", table known" } else { "" }, r.chamfer_mm.median, r.chamfer_mm.p90, r.inlier_fraction.median, r.confident_fraction * 100.0, r.scale.median, r.fit_ms.median
                     );
                 }
             }

@@ -30,6 +30,8 @@ pub struct YcbReport {
     pub views: usize,
     /// The registration was told the camera position (else it estimated it).
     pub known_viewpoint: bool,
+    /// The registration was told the table's height (the scan resting on it).
+    pub known_table: bool,
     pub chamfer_mm: Percentiles,
     pub inlier_fraction: Percentiles,
     pub confident_fraction: f64,
@@ -44,6 +46,7 @@ pub fn evaluate(
     views: usize,
     seed: u64,
     known_viewpoint: bool,
+    known_table: bool,
     base: &RegisterOptions,
 ) -> Result<YcbReport, Box<dyn std::error::Error>> {
     let mesh = crate::io::read_mesh(mesh_path)?.mesh;
@@ -59,7 +62,9 @@ pub fn evaluate(
             DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: pose, noise: DepthNoise::default() };
         let cloud = cam.capture(&scene, seed + view as u64)?.points_world;
         let viewpoint = known_viewpoint.then(|| pose.translation.vector.into());
-        let reg = registrar.register(&cloud, &RegisterOptions { seed: seed + view as u64, viewpoint, ..*base })?;
+        let support_height = known_table.then_some(lo.z).or(base.support_height);
+        let reg = registrar
+            .register(&cloud, &RegisterOptions { seed: seed + view as u64, viewpoint, support_height, ..*base })?;
         chamfer.push(chamfer_mm(&to_p3(&registrar.completed_shape(&reg)), &truth));
         inliers.push(reg.fit.inlier_fraction);
         scale.push(reg.scale);
@@ -71,6 +76,7 @@ pub fn evaluate(
         mesh: mesh_path.display().to_string(),
         views,
         known_viewpoint,
+        known_table,
         chamfer_mm: percentiles(chamfer),
         inlier_fraction: percentiles(inliers),
         confident_fraction: confident as f64 / views.max(1) as f64,
