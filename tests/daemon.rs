@@ -658,6 +658,7 @@ fn the_python_sdk_answers_as_the_cli() {
         "points": points,
         "register": expected,
         "grasp": f.grasp,
+        "on_table": f.on_table,
     });
     std::fs::write(&fixture_file, serde_json::to_vec(&v).unwrap()).unwrap();
     let out = Command::new(&python)
@@ -669,7 +670,7 @@ fn the_python_sdk_answers_as_the_cli() {
     let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "the Python SDK's tests failed:\n{text}");
     // Every test ran against the daemon: none skipped.
-    assert!(text.contains("6 passed") && !text.contains("skipped"), "{text}");
+    assert!(text.contains("7 passed") && !text.contains("skipped"), "{text}");
 
     // A Python client started before its daemon waits for it (connect_timeout_s).
     let prefix = unique_prefix("python_wait");

@@ -70,6 +70,17 @@ def test_register_answers_as_the_cli(client, fixture):
 
 
 @needs_daemon
+def test_register_on_a_known_table_answers_as_the_cli(client, fixture):
+    # `graspd register --table-z 0`: the mug held on the table it stands on.
+    r = client.register("mug", np.array(fixture["points"], dtype=np.float32), table=0.0)
+    expected = fixture["on_table"]
+    assert r["latent"] == expected["latent"]
+    assert r["keypoints"] == expected["keypoints"]
+    assert r["pose"]["translation"] == expected["pose"]["translation"]
+    assert r["keypoints"] != fixture["register"]["keypoints"]
+
+
+@needs_daemon
 def test_grasp_answers_as_the_cli(client, fixture):
     g = client.grasp("mug", np.array(fixture["points"]))
     expected = fixture["grasp"]
