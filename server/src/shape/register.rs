@@ -939,10 +939,11 @@ impl Pose {
 }
 
 /// The plane the tool rests on: up·x = height (cloud frame). A fit adds
-/// ½·K·(height − h̄)²/σ² to its objective, h̄ the mean height of the model's
-/// contact points (those within [`CONTACT_BAND_M`] of its lowest) and K =
-/// `weight` × the observed points' total posterior (Np): the support weighs
-/// as much as that share of the view, at every σ.
+/// ½·K·(height − lowest)²/σ² to its objective, the model's lowest point
+/// moved through the mean of its contact points (those within
+/// [`CONTACT_BAND_M`] of it: one point alone would jump from iteration to
+/// iteration), with K = `weight` × the observed points' total posterior
+/// (Np): the support weighs as much as that share of the view, at every σ.
 #[derive(Clone, Copy, Debug)]
 struct Support {
     up: Vector3<f64>,
@@ -1001,8 +1002,8 @@ impl Support {
 
     /// The support's term in the latent's normal equations (model frame,
     /// units of `LatentStep::solve`): the contact's mean height is
-    /// s·(e' + gᵀℓ) + up·t with g = Σ Bᵢᵀuₘ/|C| and uₘ = Rᵀup, so the term
-    /// is ½(e − gᵀℓ)² times K with e = (height − up·t)/s − uₘ·base̅.
+    /// s·(uₘ·base̅ + gᵀℓ) + up·t with g = Σ Bᵢᵀuₘ/|C| and uₘ = Rᵀup, so the
+    /// term is ½(e − gᵀℓ)² times K with e = (target − up·t)/s − uₘ·base̅.
     fn latent_row(&self, step: &LatentStep, pose: &Pose, idx: &[usize], target: f64) -> (Vec<f64>, f64) {
         let um = pose.r.transpose() * self.up;
         let n = idx.len().max(1) as f64;
