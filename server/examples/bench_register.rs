@@ -2,7 +2,8 @@
 //! 2,000-point target of the shape-engine issue is a subsample of these).
 //! `cargo run --release --example bench_register -- mug [repeats]`; set
 //! VIEWPOINT=known or VIEWPOINT=unknown to time one of the two cases only;
-//! REGISTER_OPTIONS='{"race_points": 300}' lays options over the defaults.
+//! REGISTER_OPTIONS='{"race_points": 300}' lays options over the defaults;
+//! FULL_VIEWS=1 registers the whole views instead of 2,000-point subsamples.
 #[path = "common/views.rs"]
 mod views;
 

@@ -1,6 +1,7 @@
 //! The test views the benchmarks share: each test instance of a category
 //! turned to 8 yaws on a table, seen by the standard camera ring with depth
-//! noise, subsampled to about 2,000 points (the shape-engine issue's size).
+//! noise, subsampled to about 2,000 points (the shape-engine issue's size),
+//! or whole (8,000-16,000 points, what a client sends) with `FULL_VIEWS=1`.
 use graspd::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
 use graspd::tools::{self, Category, Split};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
@@ -31,7 +32,8 @@ pub fn test_views(category: Category) -> Result<Vec<View>, Box<dyn std::error::E
             let cam_pose = standard_view(view, 8, centre, inst.mesh.diagonal(), intrinsics)?;
             let cam = DepthCamera { intrinsics, world_from_camera: cam_pose, noise: DepthNoise::default() };
             let cloud = cam.capture(&scene, view as u64)?.points_world;
-            let cloud: Vec<_> = cloud.iter().step_by((cloud.len() / 2000).max(1)).copied().collect();
+            let step = if full_views() { 1 } else { (cloud.len() / 2000).max(1) };
+            let cloud: Vec<_> = cloud.iter().step_by(step).copied().collect();
             let t = cam_pose.translation.vector;
             let keypoints_world =
                 inst.keypoints.iter().map(|k| (pose * Point3::from(k.position)).coords.into()).collect();
@@ -39,4 +41,9 @@ pub fn test_views(category: Category) -> Result<Vec<View>, Box<dyn std::error::E
         }
     }
     Ok(views)
+}
+
+/// Whether the benchmarks take the whole views (`FULL_VIEWS=1`).
+pub fn full_views() -> bool {
+    std::env::var("FULL_VIEWS").is_ok_and(|v| v == "1")
 }

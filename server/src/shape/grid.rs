@@ -237,6 +237,25 @@ impl RadiusGrid {
     }
 }
 
+impl RadiusGrid {
+    /// The squared distance from `q` to the nearest point of the set the
+    /// grid was built on, when one lies within √`r2` (which must not exceed
+    /// the build radius²); None otherwise. Exact: every point that near is
+    /// in the 27 cells around `q`.
+    pub fn nearest_within(&self, q: &P3, r2: f64) -> Option<f64> {
+        let [sx, sy, sz] = &self.sorted;
+        let (runs, count) = self.runs_around(q);
+        let mut best = f64::INFINITY;
+        for &(s, e) in &runs[..count] {
+            for p in s..e {
+                let (dx, dy, dz) = (sx[p] - q[0], sy[p] - q[1], sz[p] - q[2]);
+                best = best.min(dx * dx + dy * dy + dz * dz);
+            }
+        }
+        (best <= r2).then_some(best)
+    }
+}
+
 /// `v.floor()` without the call: the baseline x86-64 target has no rounding
 /// instruction (SSE4.1's `roundsd`), so `f64::floor` is a call into a
 /// software routine, and the grid and range-image cell lookups were 2 % of a
@@ -270,6 +289,30 @@ mod tests {
         }
         assert!(floor(f64::NAN).is_nan());
         assert_eq!(floor(f64::NEG_INFINITY), f64::NEG_INFINITY);
+    }
+
+    #[test]
+    fn the_nearest_point_within_the_radius_is_the_brute_force_one() {
+        let mut r = rand_chacha::ChaCha8Rng::seed_from_u64(8);
+        let x: Vec<P3> = (0..1500).map(|_| [r.random(), r.random::<f64>() * 0.5, r.random::<f64>() * 0.1]).collect();
+        let mut g = RadiusGrid::default();
+        let (mut near, mut far) = (0, 0);
+        for radius in [0.01, 0.05, 0.3] {
+            g.build(&x, radius);
+            for _ in 0..200 {
+                let q = [r.random::<f64>() * 1.4 - 0.2, r.random::<f64>() * 0.7 - 0.1, r.random::<f64>() * 0.3 - 0.1];
+                let best = x.iter().map(|p| super::super::estep::dist2(p, &q)).fold(f64::INFINITY, f64::min);
+                let want = (best <= radius * radius).then_some(best);
+                assert_eq!(g.nearest_within(&q, radius * radius), want, "radius {radius}, query {q:?}");
+                if want.is_some() {
+                    near += 1;
+                } else {
+                    far += 1;
+                }
+            }
+        }
+        // Both answers were exercised.
+        assert!(near > 50 && far > 50, "{near} near, {far} far");
     }
 
     #[test]
