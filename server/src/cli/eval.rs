@@ -101,16 +101,8 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                     continue;
                 }
                 let registrar = Registrar::new(builtin::load_or_build(c, &spaces_dir(), |_, _| {})?);
-                reports.push(graspd::eval::ycb::evaluate(
-                    &registrar,
-                    c,
-                    &path,
-                    views,
-                    seed,
-                    known_viewpoint,
-                    known_table,
-                    &register,
-                )?);
+                let protocol = graspd::eval::ycb::YcbProtocol { views, seed, known_viewpoint, known_table };
+                reports.push(graspd::eval::ycb::evaluate(&registrar, c, &path, protocol, &register)?);
             }
             if json {
                 print_json(&reports)?;

@@ -39,16 +39,26 @@ pub struct YcbReport {
     pub fit_ms: Percentiles,
 }
 
+/// How the scans are seen and what the registration is told.
+#[derive(Clone, Copy, Debug)]
+pub struct YcbProtocol {
+    /// Camera views around the scan, and the seed of their depth noise.
+    pub views: usize,
+    pub seed: u64,
+    /// Tell the registration the camera position (else it estimates it).
+    pub known_viewpoint: bool,
+    /// Tell it the table's height (the scan resting on it).
+    pub known_table: bool,
+}
+
 pub fn evaluate(
     registrar: &Registrar,
     category: Category,
     mesh_path: &Path,
-    views: usize,
-    seed: u64,
-    known_viewpoint: bool,
-    known_table: bool,
+    protocol: YcbProtocol,
     base: &RegisterOptions,
 ) -> Result<YcbReport, Box<dyn std::error::Error>> {
+    let YcbProtocol { views, seed, known_viewpoint, known_table } = protocol;
     let mesh = crate::io::read_mesh(mesh_path)?.mesh;
     let truth = to_p3(&sample_points(&mesh, 4000, 99)?);
     let (lo, _) = mesh.aabb().ok_or("empty mesh")?;
