@@ -260,8 +260,8 @@ fn trial(
         );
     }
     let t0 = Instant::now();
-    let t = cam_pose.translation.vector;
-    let viewpoint = (opts.known_viewpoint && !opts.full_surface).then_some([t.x, t.y, t.z]);
+    let t_cam = cam_pose.translation.vector;
+    let viewpoint = (opts.known_viewpoint && !opts.full_surface).then_some([t_cam.x, t_cam.y, t_cam.z]);
     let support_height = opts.known_table.then_some(0.0).or(opts.register.support_height);
     let reg = registrar
         .register(&cloud, &RegisterOptions { seed: rng.random(), viewpoint, support_height, ..opts.register })
@@ -342,6 +342,21 @@ fn trial(
                 inst.name, t.points, t.ambiguous, t.rotation_error_deg, reg.scale, reg.fit.inlier_fraction, mean(&t.kp[0]), mean(&t.kp[1]), mean(&t.kp[2]), t.fit_ms
             );
             eprintln!("   ours per keypoint {:?}  canonical {:?}", t.kp[0].iter().map(|x| (x * 10.0).round() / 10.0).collect::<Vec<_>>(), t.kp[1].iter().map(|x| (x * 10.0).round() / 10.0).collect::<Vec<_>>());
+            if viewpoint.is_none() && !opts.full_surface {
+                // The camera the registration estimated, as seen from the view's centroid.
+                let centre = cloud.iter().fold(Vector3::zeros(), |a, p| a + p.coords) / cloud.len().max(1) as f64;
+                match reg.estimated_viewpoint {
+                    Some(est) => {
+                        let (e, tr) = (Vector3::from(est) - centre, t_cam - centre);
+                        eprintln!(
+                            "   estimated camera {:.1}° off the true direction, {:.2} of its distance",
+                            e.angle(&tr).to_degrees(),
+                            e.norm() / tr.norm().max(1e-12)
+                        );
+                    }
+                    None => eprintln!("   camera not estimated (the view did not settle it)"),
+                }
+            }
             if std::env::var_os("GRASPD_EVAL_TRACE_VEC").is_some() {
                 let v: Vec<[f64; 3]> = ours_kp
                     .iter()
