@@ -116,6 +116,22 @@ pub struct SplitReport {
     /// lets the hidden side pull on the seen surface shows here as a bias
     /// that averaging over views does not remove.
     pub keypoint_depth_bias_mm: Percentiles,
+    /// Without the camera position (`--unknown-viewpoint`): how often the
+    /// registration estimated one and how far it was from the true camera.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub estimated_viewpoint: Option<ViewpointErrors>,
+}
+
+/// The estimated cameras against the true ones, seen from each view's centroid.
+#[derive(Clone, Debug, Serialize)]
+pub struct ViewpointErrors {
+    /// Share of the views for which the registration estimated a camera
+    /// (the others it fitted without one: the view did not settle it).
+    pub estimated_fraction: f64,
+    /// Angle between the estimated and the true direction to the camera.
+    pub direction_error_deg: Percentiles,
+    /// Estimated over true distance from the centroid.
+    pub distance_ratio: Percentiles,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -137,6 +153,9 @@ struct Trial {
     confident: bool,
     ambiguous: bool,
     rotation_error_deg: f64,
+    /// Without the camera position: the estimated camera's direction error
+    /// (degrees) and distance ratio, or None when none was estimated.
+    viewpoint_error: Option<Option<(f64, f64)>>,
 }
 
 /// Runs the evaluation on the instances of one split. `grasp_targets` are
@@ -197,7 +216,22 @@ pub fn evaluate(
             trials.iter().filter(|t| !t.ambiguous).flat_map(|t| t.kp[0].iter().copied()).collect(),
         ),
         keypoint_depth_bias_mm: percentiles(trials.iter().map(|t| t.depth_bias_mm).collect()),
+        estimated_viewpoint: viewpoint_errors(&trials),
     }
+}
+
+/// The estimated cameras' errors over the trials that had to estimate one (None: no such trial).
+fn viewpoint_errors(trials: &[Trial]) -> Option<ViewpointErrors> {
+    let asked: Vec<Option<(f64, f64)>> = trials.iter().filter_map(|t| t.viewpoint_error).collect();
+    if asked.is_empty() {
+        return None;
+    }
+    let estimated: Vec<(f64, f64)> = asked.iter().flatten().copied().collect();
+    Some(ViewpointErrors {
+        estimated_fraction: estimated.len() as f64 / asked.len() as f64,
+        direction_error_deg: percentiles(estimated.iter().map(|e| e.0).collect()),
+        distance_ratio: percentiles(estimated.iter().map(|e| e.1).collect()),
+    })
 }
 
 fn trial(
@@ -305,6 +339,14 @@ fn trial(
     let cpd_shape = nr.field.apply(&cpd::to_p3(&placed_surface));
 
     let rotation_error_deg = (reg.rotation_cloud_from_canonical * rot.inverse()).angle().to_degrees();
+    // The camera the registration estimated, as seen from the view's centroid.
+    let viewpoint_error = (viewpoint.is_none() && !opts.full_surface).then(|| {
+        let centre = cloud.iter().fold(Vector3::zeros(), |a, p| a + p.coords) / cloud.len().max(1) as f64;
+        reg.estimated_viewpoint.map(|est| {
+            let (e, truth) = (Vector3::from(est) - centre, t_cam - centre);
+            (e.angle(&truth).to_degrees(), e.norm() / truth.norm().max(1e-12))
+        })
+    });
     let err = |pred: &[P3], truth: &[P3]| {
         pred.iter().zip(truth).map(|(a, b)| crate::shape::estep::dist2(a, b).sqrt() * 1e3).collect::<Vec<_>>()
     };
@@ -333,6 +375,7 @@ fn trial(
         confident: reg.fit.confident,
         ambiguous: reg.fit.ambiguous_pose,
         rotation_error_deg,
+        viewpoint_error,
     })
     .inspect(|t| {
         if trace {
@@ -342,20 +385,12 @@ fn trial(
                 inst.name, t.points, t.ambiguous, t.rotation_error_deg, reg.scale, reg.fit.inlier_fraction, mean(&t.kp[0]), mean(&t.kp[1]), mean(&t.kp[2]), t.fit_ms
             );
             eprintln!("   ours per keypoint {:?}  canonical {:?}", t.kp[0].iter().map(|x| (x * 10.0).round() / 10.0).collect::<Vec<_>>(), t.kp[1].iter().map(|x| (x * 10.0).round() / 10.0).collect::<Vec<_>>());
-            if viewpoint.is_none() && !opts.full_surface {
-                // The camera the registration estimated, as seen from the view's centroid.
-                let centre = cloud.iter().fold(Vector3::zeros(), |a, p| a + p.coords) / cloud.len().max(1) as f64;
-                match reg.estimated_viewpoint {
-                    Some(est) => {
-                        let (e, tr) = (Vector3::from(est) - centre, t_cam - centre);
-                        eprintln!(
-                            "   estimated camera {:.1}° off the true direction, {:.2} of its distance",
-                            e.angle(&tr).to_degrees(),
-                            e.norm() / tr.norm().max(1e-12)
-                        );
-                    }
-                    None => eprintln!("   camera not estimated (the view did not settle it)"),
+            match t.viewpoint_error {
+                Some(Some((deg, ratio))) => {
+                    eprintln!("   estimated camera {deg:.1}° off the true direction, {ratio:.2} of its distance")
                 }
+                Some(None) => eprintln!("   camera not estimated (the view did not settle it)"),
+                None => {}
             }
             if std::env::var_os("GRASPD_EVAL_TRACE_VEC").is_some() {
                 let v: Vec<[f64; 3]> = ours_kp
