@@ -153,9 +153,18 @@ struct Trial {
     confident: bool,
     ambiguous: bool,
     rotation_error_deg: f64,
-    /// Without the camera position: the estimated camera's direction error
-    /// (degrees) and distance ratio, or None when none was estimated.
-    viewpoint_error: Option<Option<(f64, f64)>>,
+    camera: CameraEstimate,
+}
+
+/// What the registration knew of the camera in one trial.
+#[derive(Clone, Copy)]
+enum CameraEstimate {
+    /// Given (or no camera: whole-surface samples).
+    Given,
+    /// Not given, and the view did not settle an estimate.
+    NotEstimated,
+    /// Not given; estimated this far off the true camera, seen from the view's centroid.
+    Estimated { direction_deg: f64, distance_ratio: f64 },
 }
 
 /// Runs the evaluation on the instances of one split. `grasp_targets` are
@@ -222,13 +231,19 @@ pub fn evaluate(
 
 /// The estimated cameras' errors over the trials that had to estimate one (None: no such trial).
 fn viewpoint_errors(trials: &[Trial]) -> Option<ViewpointErrors> {
-    let asked: Vec<Option<(f64, f64)>> = trials.iter().filter_map(|t| t.viewpoint_error).collect();
-    if asked.is_empty() {
+    let asked = trials.iter().filter(|t| !matches!(t.camera, CameraEstimate::Given)).count();
+    if asked == 0 {
         return None;
     }
-    let estimated: Vec<(f64, f64)> = asked.iter().flatten().copied().collect();
+    let estimated: Vec<(f64, f64)> = trials
+        .iter()
+        .filter_map(|t| match t.camera {
+            CameraEstimate::Estimated { direction_deg, distance_ratio } => Some((direction_deg, distance_ratio)),
+            _ => None,
+        })
+        .collect();
     Some(ViewpointErrors {
-        estimated_fraction: estimated.len() as f64 / asked.len() as f64,
+        estimated_fraction: estimated.len() as f64 / asked as f64,
         direction_error_deg: percentiles(estimated.iter().map(|e| e.0).collect()),
         distance_ratio: percentiles(estimated.iter().map(|e| e.1).collect()),
     })
@@ -339,14 +354,18 @@ fn trial(
     let cpd_shape = nr.field.apply(&cpd::to_p3(&placed_surface));
 
     let rotation_error_deg = (reg.rotation_cloud_from_canonical * rot.inverse()).angle().to_degrees();
-    // The camera the registration estimated, as seen from the view's centroid.
-    let viewpoint_error = (viewpoint.is_none() && !opts.full_surface).then(|| {
-        let centre = cloud.iter().fold(Vector3::zeros(), |a, p| a + p.coords) / cloud.len().max(1) as f64;
-        reg.estimated_viewpoint.map(|est| {
+    let camera = match (viewpoint.is_some() || opts.full_surface, reg.estimated_viewpoint) {
+        (true, _) => CameraEstimate::Given,
+        (false, None) => CameraEstimate::NotEstimated,
+        (false, Some(est)) => {
+            let centre = cloud.iter().fold(Vector3::zeros(), |a, p| a + p.coords) / cloud.len().max(1) as f64;
             let (e, truth) = (Vector3::from(est) - centre, t_cam - centre);
-            (e.angle(&truth).to_degrees(), e.norm() / truth.norm().max(1e-12))
-        })
-    });
+            CameraEstimate::Estimated {
+                direction_deg: e.angle(&truth).to_degrees(),
+                distance_ratio: e.norm() / truth.norm().max(1e-12),
+            }
+        }
+    };
     let err = |pred: &[P3], truth: &[P3]| {
         pred.iter().zip(truth).map(|(a, b)| crate::shape::estep::dist2(a, b).sqrt() * 1e3).collect::<Vec<_>>()
     };
@@ -375,7 +394,7 @@ fn trial(
         confident: reg.fit.confident,
         ambiguous: reg.fit.ambiguous_pose,
         rotation_error_deg,
-        viewpoint_error,
+        camera,
     })
     .inspect(|t| {
         if trace {
@@ -385,12 +404,12 @@ fn trial(
                 inst.name, t.points, t.ambiguous, t.rotation_error_deg, reg.scale, reg.fit.inlier_fraction, mean(&t.kp[0]), mean(&t.kp[1]), mean(&t.kp[2]), t.fit_ms
             );
             eprintln!("   ours per keypoint {:?}  canonical {:?}", t.kp[0].iter().map(|x| (x * 10.0).round() / 10.0).collect::<Vec<_>>(), t.kp[1].iter().map(|x| (x * 10.0).round() / 10.0).collect::<Vec<_>>());
-            match t.viewpoint_error {
-                Some(Some((deg, ratio))) => {
-                    eprintln!("   estimated camera {deg:.1}° off the true direction, {ratio:.2} of its distance")
-                }
-                Some(None) => eprintln!("   camera not estimated (the view did not settle it)"),
-                None => {}
+            match t.camera {
+                CameraEstimate::Estimated { direction_deg, distance_ratio } => eprintln!(
+                    "   estimated camera {direction_deg:.1}° off the true direction, {distance_ratio:.2} of its distance"
+                ),
+                CameraEstimate::NotEstimated => eprintln!("   camera not estimated (the view did not settle it)"),
+                CameraEstimate::Given => {}
             }
             if std::env::var_os("GRASPD_EVAL_TRACE_VEC").is_some() {
                 let v: Vec<[f64; 3]> = ours_kp
