@@ -3,7 +3,8 @@
 //! `cargo run --release --example bench_register -- mug [repeats]`; set
 //! VIEWPOINT=known or VIEWPOINT=unknown to time one of the two cases only;
 //! REGISTER_OPTIONS='{"race_points": 300}' lays options over the defaults;
-//! FULL_VIEWS=1 registers the whole views instead of 2,000-point subsamples.
+//! FULL_VIEWS=1 registers the whole views instead of 2,000-point subsamples,
+//! DENSE_VIEWS=K each point of the whole views K times (see common/views.rs).
 #[path = "common/views.rs"]
 mod views;
 

@@ -1,7 +1,7 @@
 //! The test views the benchmarks share: each test instance of a category
 //! turned to 8 yaws on a table, seen by the standard camera ring with depth
 //! noise, subsampled to about 2,000 points (the shape-engine issue's size),
-//! or whole (8,000-16,000 points, what a client sends) with `FULL_VIEWS=1`,
+//! or whole (3,500-16,000 points, what a client sends) with `FULL_VIEWS=1`,
 //! or each point taken K times with 0.5 mm of seeded jitter with
 //! `DENSE_VIEWS=K` (a denser sensor's view: K = 13 gives about 200,000).
 use graspd::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};

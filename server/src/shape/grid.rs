@@ -235,9 +235,7 @@ impl RadiusGrid {
             out.truncate(len);
         }
     }
-}
 
-impl RadiusGrid {
     /// The squared distance from `q` to the nearest point of the set the
     /// grid was built on, when one lies within √`r2` (which must not exceed
     /// the build radius²); None otherwise. Exact: every point that near is
