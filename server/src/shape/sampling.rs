@@ -185,6 +185,19 @@ impl<V: Copy + Default> Cells<V> {
         }
     }
 
+    /// The sum of `count` over the occupied cells of the 3×3×3 block around
+    /// `key` (a key of the grid's box).
+    fn block_sum(&self, key: u64, count: impl Fn(&V) -> usize) -> usize
+    where
+        V: Default,
+    {
+        match self {
+            // Unoccupied cells hold the default: `count` must give it 0.
+            Self::Dense(d) => d.block_sum(key, count),
+            Self::Hashed(_) => VoxelGrid::block(key).filter_map(|b| self.get(b)).map(|v| count(&v)).sum(),
+        }
+    }
+
     /// The occupied (key, value) pairs, in no particular order.
     fn iter(&self) -> Box<dyn Iterator<Item = (u64, V)> + '_> {
         match self {
@@ -214,6 +227,32 @@ impl<V> DenseCells<V> {
         let i = i as u64;
         let [d0, d1, _] = self.dims;
         (i % d0) | ((i / d0 % d1) << 21) | ((i / (d0 * d1)) << 42)
+    }
+
+    /// The sum of `count` over the 3×3×3 cells around cell `key`, within
+    /// the box, by array index (unoccupied cells hold the default, counted
+    /// as `count` gives it).
+    #[inline]
+    fn block_sum(&self, key: u64, count: impl Fn(&V) -> usize) -> usize {
+        let m = VoxelGrid::MAX_CELL;
+        let c = [key & m, (key >> 21) & m, key >> 42];
+        let [d0, d1, d2] = self.dims;
+        // The block's span along each axis, clipped to the box.
+        let span = |c: u64, d: u64| (c.saturating_sub(1), (c + 1).min(d.saturating_sub(1)));
+        let ((x0, x1), (y0, y1), (z0, z1)) = (span(c[0], d0), span(c[1], d1), span(c[2], d2));
+        // A key beyond the box (a point outside the probe the grid was
+        // bounded by) has an empty block there.
+        if x0 > x1 {
+            return 0;
+        }
+        let mut sum = 0;
+        for z in z0..=z1 {
+            for y in y0..=y1 {
+                let row = ((z * d1 + y) * d0) as usize;
+                sum += self.values[row + x0 as usize..=row + x1 as usize].iter().map(&count).sum::<usize>();
+            }
+        }
+        sum
     }
 
     /// Marks cell `i` occupied; whether it was not before.
@@ -334,9 +373,11 @@ pub fn drop_stray_points(x: &[P3], rng: &mut rand_chacha::ChaCha8Rng) -> Vec<P3>
     for p in &probe {
         cells.entry(grid.key(p)).0 += 1;
     }
-    let count_of = |cells: &Cells<(usize, usize)>, k: u64| cells.get(k).map_or(0, |c| c.0);
-    let block_of =
-        |cells: &Cells<(usize, usize)>, k: u64| VoxelGrid::block(k).map(|b| count_of(cells, b)).sum::<usize>();
+    // Block sums by array index where the grid is dense: through the key
+    // iterator and a lookup a cell they were 70-85 µs of the 150-270 this
+    // took on a 2,000-point drill view (`bench_subsets`, the mug's test
+    // views, the same points kept: 166 → 126 µs).
+    let block_of = |cells: &Cells<(usize, usize)>, k: u64| cells.block_sum(k, |c| c.0);
     let occupied: Vec<(u64, usize)> = cells.iter().map(|(k, (n, _))| (k, n)).collect();
     for &(k, _) in &occupied {
         let block = block_of(&cells, k);
@@ -460,6 +501,13 @@ mod tests {
             for k in VoxelGrid::block(grid.key(p)) {
                 assert_eq!(dense.get(k), hashed.get(k), "key {k:#x}");
             }
+            let k = grid.key(p);
+            assert_eq!(dense.block_sum(k, |c| c.0 as usize), hashed.block_sum(k, |c| c.0 as usize), "key {k:#x}");
+        }
+        // Past the far side by one cell and by more (a point outside the probe).
+        let [d0, d1, d2] = grid.dims();
+        for k in [d0 | d1 << 21 | d2 << 42, (d0 + 5) | 2 << 21 | 2 << 42, 2 | (d1 + 3) << 21 | 1 << 42] {
+            assert_eq!(dense.block_sum(k, |c| c.0 as usize), hashed.block_sum(k, |c| c.0 as usize), "key {k:#x}");
         }
         // A box too large for an array (a point kilometres away) takes the map.
         let far: Vec<P3> = x.iter().copied().chain([[3e3, 0.0, 0.0]]).collect();
