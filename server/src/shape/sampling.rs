@@ -198,15 +198,23 @@ impl<V: Copy + Default> Cells<V> {
         }
     }
 
+    /// The occupied cells' values in the order of their keys.
+    fn values_by_key(&self) -> Vec<V> {
+        match self {
+            // Array order is key order (z, then y, then x, as the key's bits).
+            Self::Dense(d) => d.occupied_indices().map(|i| d.values[i]).collect(),
+            Self::Hashed(h) => {
+                let mut pairs: Vec<(u64, V)> = h.iter().collect();
+                pairs.sort_unstable_by_key(|&(k, _)| k);
+                pairs.into_iter().map(|(_, v)| v).collect()
+            }
+        }
+    }
+
     /// The occupied (key, value) pairs, in no particular order.
     fn iter(&self) -> Box<dyn Iterator<Item = (u64, V)> + '_> {
         match self {
-            Self::Dense(d) => Box::new(d.occupied.iter().enumerate().flat_map(move |(w, &bits)| {
-                (0..64).filter(move |b| bits >> b & 1 == 1).map(move |b| {
-                    let i = w * 64 + b;
-                    (d.key(i), d.values[i])
-                })
-            })),
+            Self::Dense(d) => Box::new(d.occupied_indices().map(|i| (d.key(i), d.values[i]))),
             Self::Hashed(h) => Box::new(h.iter()),
         }
     }
@@ -253,6 +261,15 @@ impl<V> DenseCells<V> {
             }
         }
         sum
+    }
+
+    /// Indices of the occupied cells, ascending (a set bit at a time, not
+    /// a test of all 64 a word).
+    fn occupied_indices(&self) -> impl Iterator<Item = usize> + '_ {
+        self.occupied.iter().enumerate().flat_map(|(w, &bits)| {
+            std::iter::successors((bits != 0).then_some(bits), |&b| Some(b & (b - 1)).filter(|&b| b != 0))
+                .map(move |b| w * 64 + b.trailing_zeros() as usize)
+        })
     }
 
     /// Marks cell `i` occupied; whether it was not before.
@@ -427,9 +444,7 @@ pub fn even_subsample(x: &[P3], n: usize, rng: &mut rand_chacha::ChaCha8Rng) -> 
         let tag: u32 = rng.random();
         best.keep_least(grid.key(p), (tag, i as u32));
     }
-    let mut cells: Vec<(u64, u32)> = best.iter().map(|(k, (_, i))| (k, i)).collect();
-    cells.sort_unstable();
-    let mut chosen: Vec<u32> = cells.into_iter().map(|(_, i)| i).collect();
+    let mut chosen: Vec<u32> = best.values_by_key().into_iter().map(|(_, i)| i).collect();
     if chosen.len() > n {
         let keep = rand::seq::index::sample(rng, chosen.len(), n).into_vec();
         chosen = keep.into_iter().map(|k| chosen[k]).collect();
