@@ -420,7 +420,9 @@ pub struct Registration {
     pub viewpoint_cloud_m: [f64; 3],
     pub latent_dim: u32,
     pub keypoint_count: u32,
-    /// 1 when the fit explains the cloud (inlier fraction ≥ 0.7), else 0.
+    /// 1 when the fit explains the cloud (inlier fraction ≥ 0.7) and the
+    /// cloud shows enough of a tool (coverage, width and latent: see
+    /// README.md), else 0.
     pub confident: u32,
     /// Points received in the request.
     pub points: u32,

@@ -400,8 +400,8 @@ fn trial(
         if trace {
             let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
             eprintln!(
-                "{} view {view}: {} pts, ambiguous {}, rot err {:.1}°, scale {:.3} (true {scale:.3}), inliers {:.2}, kp mean ours {:.1} canonical {:.1} cpd {:.1} mm, {:.1} ms",
-                inst.name, t.points, t.ambiguous, t.rotation_error_deg, reg.scale, reg.fit.inlier_fraction, mean(&t.kp[0]), mean(&t.kp[1]), mean(&t.kp[2]), t.fit_ms
+                "{} view {view}: {} pts, ambiguous {}, rot err {:.1}°, scale {:.3} (true {scale:.3}), inliers {:.2}, coverage {:.3}, mahalanobis {:.2}, kp mean ours {:.1} canonical {:.1} cpd {:.1} mm, {:.1} ms",
+                inst.name, t.points, t.ambiguous, t.rotation_error_deg, reg.scale, reg.fit.inlier_fraction, reg.fit.coverage, reg.fit.latent_mahalanobis, mean(&t.kp[0]), mean(&t.kp[1]), mean(&t.kp[2]), t.fit_ms
             );
             eprintln!("   ours per keypoint {:?}  canonical {:?}", t.kp[0].iter().map(|x| (x * 10.0).round() / 10.0).collect::<Vec<_>>(), t.kp[1].iter().map(|x| (x * 10.0).round() / 10.0).collect::<Vec<_>>());
             match t.camera {
