@@ -312,8 +312,10 @@ pub struct FitQuality {
     /// RMS distance of the inliers to the completed shape, millimetres.
     pub residual_mm: f64,
     pub inlier_mm: f64,
-    /// Fraction of the completed shape's surface within `inlier_mm` of a
-    /// point of the cloud: how much of the tool the view shows. One camera
+    /// Fraction of the completed shape's surface near a point of the cloud
+    /// (within `inlier_mm`, or twice the cloud's median point spacing where
+    /// that is larger, at most 2.5 × `inlier_mm`): how much of the tool the
+    /// view shows. One camera
     /// view shows a quarter to a half of a tool; a line of points, a blob a
     /// few millimetres wide or a handful of distinct points lie on the
     /// surface of almost any shape (all inliers) yet cover a few percent of

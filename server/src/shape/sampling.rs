@@ -187,10 +187,7 @@ impl<V: Copy + Default> Cells<V> {
 
     /// The sum of `count` over the occupied cells of the 3×3×3 block around
     /// `key` (a key of the grid's box).
-    fn block_sum(&self, key: u64, count: impl Fn(&V) -> usize) -> usize
-    where
-        V: Default,
-    {
+    fn block_sum(&self, key: u64, count: impl Fn(&V) -> usize) -> usize {
         match self {
             // Unoccupied cells hold the default: `count` must give it 0.
             Self::Dense(d) => d.block_sum(key, count),
