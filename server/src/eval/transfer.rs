@@ -403,6 +403,20 @@ fn trial(
                 "{} view {view}: {} pts, ambiguous {}, rot err {:.1}°, scale {:.3} (true {scale:.3}), inliers {:.2}, coverage {:.3}, mahalanobis {:.2}, kp mean ours {:.1} canonical {:.1} cpd {:.1} mm, {:.1} ms",
                 inst.name, t.points, t.ambiguous, t.rotation_error_deg, reg.scale, reg.fit.inlier_fraction, reg.fit.coverage, reg.fit.latent_mahalanobis, mean(&t.kp[0]), mean(&t.kp[1]), mean(&t.kp[2]), t.fit_ms
             );
+            let near: Vec<usize> = truth_kp
+                .iter()
+                .map(|k| cloud.iter().filter(|p| crate::shape::estep::dist2(&[p.x, p.y, p.z], k) < 0.015 * 0.015).count())
+                .collect();
+            let cam = cam_pose.translation.vector;
+            let (first, last) = (truth_kp.first().copied().unwrap_or_default(), truth_kp.last().copied().unwrap_or_default());
+            let to_cam = (cam - Vector3::from(last)).xy().normalize();
+            let to_kp = (Vector3::from(first) - Vector3::from(last)).xy().normalize();
+            // Whether the view saw each keypoint's surroundings, and (for the mug:
+            // handle_middle about base_centre) how far round from the camera the first lies.
+            eprintln!(
+                "   cloud points within 15 mm of each true keypoint {near:?}; keypoint 0 azimuth about the last from the camera's {:.0}°",
+                to_cam.angle(&to_kp).to_degrees()
+            );
             eprintln!("   ours per keypoint {:?}  canonical {:?}", t.kp[0].iter().map(|x| (x * 10.0).round() / 10.0).collect::<Vec<_>>(), t.kp[1].iter().map(|x| (x * 10.0).round() / 10.0).collect::<Vec<_>>());
             match t.camera {
                 CameraEstimate::Estimated { direction_deg, distance_ratio } => eprintln!(
