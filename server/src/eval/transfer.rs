@@ -407,9 +407,8 @@ fn trial(
                 .iter()
                 .map(|k| cloud.iter().filter(|p| crate::shape::estep::dist2(&[p.x, p.y, p.z], k) < 0.015 * 0.015).count())
                 .collect();
-            let cam = cam_pose.translation.vector;
             let (first, last) = (truth_kp.first().copied().unwrap_or_default(), truth_kp.last().copied().unwrap_or_default());
-            let to_cam = (cam - Vector3::from(last)).xy().normalize();
+            let to_cam = (t_cam - Vector3::from(last)).xy().normalize();
             let to_kp = (Vector3::from(first) - Vector3::from(last)).xy().normalize();
             // Whether the view saw each keypoint's surroundings, and (for the mug:
             // handle_middle about base_centre) how far round from the camera the first lies.
