@@ -634,6 +634,35 @@ fn polling_mode_serves_spinning_and_event_clients() {
     }
 }
 
+/// Event-driven waiting with a long linger: after each answer the worker
+/// keeps receiving while the leader sleeps, so back-to-back calls from two
+/// clients are received by either thread. Every call is answered once, and
+/// right.
+#[test]
+fn lingering_workers_answer_back_to_back_calls_once_and_right() {
+    let d = Daemon::start("linger", "waiting = \"event\"\nlinger_us = 100000\nworkers = 1");
+    let threads: Vec<_> = (0..2)
+        .map(|t| {
+            let opts = ClientOptions { wait: WaitMode::Spin, ..d.options() };
+            std::thread::spawn(move || {
+                let f = fixture();
+                let mut c = Client::connect(opts).unwrap();
+                for i in 0..3 {
+                    let (_, points, expected) = &f.views[(t + i) % f.views.len()];
+                    assert_same_registration(&c.register("mug", points, TIMEOUT).unwrap(), expected);
+                    assert!(c.health().unwrap().serving);
+                }
+            })
+        })
+        .collect();
+    for t in threads {
+        t.join().expect("client thread");
+    }
+    let s = d.client().stats().unwrap();
+    let reg = &s.methods[proto::Method::Register as usize];
+    assert_eq!((reg.requests, reg.by_status[0]), (6, 6));
+}
+
 /// The Python SDK (client/python), written from proto/README.md alone,
 /// against a daemon: its pytest suite compares its answers with the CLI's
 /// (the same engine: bit for bit) and checks the status of bad inputs.

@@ -33,6 +33,11 @@ pub struct Config {
     /// thread more, so that one always receives.
     pub workers: u32,
     pub waiting: Waiting,
+    /// With `waiting = "event"`: after answering a Register or Grasp, the
+    /// thread that worked on it keeps receiving for this long before it
+    /// sleeps, so that a client calling again at once finds a running thread
+    /// instead of waking a sleeping one. Microseconds; 0 = off.
+    pub linger_us: u64,
     /// Requests slower than this (receipt to answer) are logged and counted, milliseconds.
     pub slow_request_ms: f64,
     /// Period of housekeeping (dead-peer cleanup, idle reply notifiers), milliseconds.
@@ -57,6 +62,7 @@ impl Default for Config {
             max_in_flight_per_client: 4,
             workers: 0,
             waiting: Waiting::Event,
+            linger_us: 200,
             slow_request_ms: 250.0,
             housekeeping_ms: 500,
             shutdown_grace_s: 30.0,
@@ -124,6 +130,9 @@ impl Config {
                 return bad(format!("{name} {v}: a finite number ≥ 0"));
             }
         }
+        if self.linger_us > 100_000 {
+            return bad(format!("linger_us {}: at most 100000", self.linger_us));
+        }
         if self.housekeeping_ms == 0 || self.housekeeping_ms > 60_000 {
             return bad(format!("housekeeping_ms {}: 1 to 60000", self.housekeeping_ms));
         }
@@ -161,6 +170,7 @@ mod tests {
             ("unknown_option = 1", "unknown_option"),
             ("service_prefix = \"a/b\"", "service_prefix"),
             ("slow_request_ms = -1.0", "slow_request_ms"),
+            ("linger_us = 1000000", "linger_us"),
         ] {
             let dir = tempfile::tempdir().unwrap();
             let p = dir.path().join("c.toml");
