@@ -373,6 +373,7 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
             "keypoints": reg.keypoints,
             // As `graspd register`: the camera position assumed when none was given (null: none used).
             "estimated_viewpoint": reg.estimated_viewpoint,
+            "yaw_arc": super::register::yaw_arc_json(&reg),
         },
         "targets": targets,
         "grasp": grasp_json(&hand, &out.grasp),

@@ -123,6 +123,7 @@ pub fn run(a: RegisterArgs) -> CliResult {
         "stage_ms": reg.stage_ms,
         // The camera position assumed when --viewpoint was not given (null: none used).
         "estimated_viewpoint": reg.estimated_viewpoint,
+        "yaw_arc": yaw_arc_json(&reg),
     });
     if a.json {
         print_json(&out)?;
@@ -141,4 +142,17 @@ pub fn run(a: RegisterArgs) -> CliResult {
         }
     }
     Ok(())
+}
+
+/// The registration's yaw arc for the JSON: the axis, the half width and how
+/// far each keypoint moves across it (`keypoints` order); null without one.
+pub(crate) fn yaw_arc_json(reg: &graspd::shape::Registration) -> serde_json::Value {
+    match (reg.yaw_arc, reg.keypoint_spread_m()) {
+        (Some(arc), Some(spread)) => serde_json::json!({
+            "axis_cloud": arc.axis_cloud,
+            "half_width_rad": arc.half_width_rad,
+            "keypoint_spread_m": spread,
+        }),
+        _ => serde_json::Value::Null,
+    }
 }

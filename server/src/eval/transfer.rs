@@ -120,7 +120,32 @@ pub struct SplitReport {
     /// registration estimated one and how far it was from the true camera.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub estimated_viewpoint: Option<ViewpointErrors>,
+    /// The views whose registration left a yaw arc open (`Registration::yaw_arc`
+    /// wider than zero), and whether the truth lies within what it reports.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub yaw_arc: Option<YawArcCalibration>,
 }
+
+/// How well the reported yaw arcs bound the errors they stand for.
+#[derive(Clone, Debug, Serialize)]
+pub struct YawArcCalibration {
+    /// Share of the views with an open arc.
+    pub views_fraction: f64,
+    pub half_width_deg: Percentiles,
+    /// Share of those views whose orientation error is within the half width
+    /// and half a sweep step (the arc's resolution).
+    pub rotation_within_arc: f64,
+    /// Share of their keypoints whose error is within the keypoint's spread
+    /// across the arc plus `KEYPOINT_SPREAD_ALLOWANCE_MM` (the shape's own error).
+    pub keypoints_within_spread: f64,
+    /// Keypoint error (ours) on these views, and the spread reported for them.
+    pub keypoint_error_mm: Percentiles,
+    pub keypoint_spread_mm: Percentiles,
+}
+
+/// The shape's own error a keypoint may add to its spread across a yaw arc
+/// (the unambiguous views' keypoint p90 is 3-4 mm on all three categories).
+pub const KEYPOINT_SPREAD_ALLOWANCE_MM: f64 = 5.0;
 
 /// The estimated cameras against the true ones, seen from each view's centroid.
 #[derive(Clone, Debug, Serialize)]
@@ -154,6 +179,10 @@ struct Trial {
     ambiguous: bool,
     rotation_error_deg: f64,
     camera: CameraEstimate,
+    /// The yaw arc's half width (radians) and each keypoint's spread across it (mm).
+    arc: Option<(f64, Vec<f64>)>,
+    /// The arc's resolution: one sweep step, radians.
+    arc_step: f64,
 }
 
 /// What the registration knew of the camera in one trial.
@@ -226,7 +255,33 @@ pub fn evaluate(
         ),
         keypoint_depth_bias_mm: percentiles(trials.iter().map(|t| t.depth_bias_mm).collect()),
         estimated_viewpoint: viewpoint_errors(&trials),
+        yaw_arc: yaw_arc_calibration(&trials),
     }
+}
+
+/// The open arcs against the truth (None: no view left one open).
+fn yaw_arc_calibration(trials: &[Trial]) -> Option<YawArcCalibration> {
+    let open: Vec<(&Trial, f64, &[f64])> = trials
+        .iter()
+        .filter_map(|t| t.arc.as_ref().filter(|(h, _)| *h > 0.0).map(|(h, s)| (t, *h, s.as_slice())))
+        .collect();
+    if open.is_empty() {
+        return None;
+    }
+    let n = open.len() as f64;
+    let rotation_within =
+        open.iter().filter(|(t, h, _)| t.rotation_error_deg.to_radians() <= h + t.arc_step / 2.0).count() as f64;
+    let pairs: Vec<(f64, f64)> =
+        open.iter().flat_map(|(t, _, s)| t.kp[0].iter().copied().zip(s.iter().copied())).collect();
+    let within = pairs.iter().filter(|(e, s)| *e <= s + KEYPOINT_SPREAD_ALLOWANCE_MM).count() as f64;
+    Some(YawArcCalibration {
+        views_fraction: n / trials.len() as f64,
+        half_width_deg: percentiles(open.iter().map(|(_, h, _)| h.to_degrees()).collect()),
+        rotation_within_arc: rotation_within / n,
+        keypoints_within_spread: within / pairs.len().max(1) as f64,
+        keypoint_error_mm: percentiles(pairs.iter().map(|p| p.0).collect()),
+        keypoint_spread_mm: percentiles(pairs.iter().map(|p| p.1).collect()),
+    })
 }
 
 /// The estimated cameras' errors over the trials that had to estimate one (None: no such trial).
@@ -395,6 +450,8 @@ fn trial(
         ambiguous: reg.fit.ambiguous_pose,
         rotation_error_deg,
         camera,
+        arc: reg.yaw_arc.zip(reg.keypoint_spread_m()).map(|(a, s)| (a.half_width_rad, s.iter().map(|x| x * 1e3).collect())),
+        arc_step: std::f64::consts::TAU / opts.register.yaw_sweep_steps.max(1) as f64,
     })
     .inspect(|t| {
         if trace {

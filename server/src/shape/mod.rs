@@ -13,7 +13,7 @@ pub mod register;
 pub mod sampling;
 pub mod space;
 
-pub use register::{RegisterOptions, Registrar, Registration};
+pub use register::{RegisterOptions, Registrar, Registration, YawArc};
 pub use space::{BuildOptions, ShapeSpace};
 
 #[cfg(test)]

@@ -362,6 +362,50 @@ pub struct Registration {
     /// estimated from the view and a first fit (`RegisterOptions::estimate_viewpoint`);
     /// None when one was given or the view did not settle it.
     pub estimated_viewpoint: Option<[f64; 3]>,
+    /// The turns about the tool's upright axis that explain the view about
+    /// as well as the reported pose; None when no yaw sweep ran (no up
+    /// direction, or `yaw_sweep_steps` below 4).
+    pub yaw_arc: Option<YawArc>,
+}
+
+/// The arc of turns a view leaves open (`RegisterOptions::yaw_sweep_steps`):
+/// a mug whose handle is hidden fits about as well at any turn that keeps
+/// the handle out of sight, and the registration reports the middle of that
+/// arc. The keypoints off the axis are uncertain by as much as the turn
+/// moves them ([`YawArc::spread`]); a wide arc says: take another view.
+#[derive(Clone, Copy, Debug, Serialize, PartialEq)]
+pub struct YawArc {
+    /// The tool's canonical axis nearest the up direction when it is within
+    /// 10° of it, else the up direction, in the cloud's frame (unit); the arc
+    /// turns about it through the canonical frame's origin
+    /// (`Registration::translation_cloud_from_canonical`).
+    pub axis_cloud: [f64; 3],
+    /// Turns up to this far either way of the reported pose score within
+    /// `yaw_sweep_margin` of the best; 0 when no other sweep step does.
+    /// Resolution: one sweep step (22.5° with the default 16 steps).
+    pub half_width_rad: f64,
+}
+
+impl YawArc {
+    /// How far `point` (cloud frame) moves when the tool turns by the arc's
+    /// half width about its axis through `pivot`: the chord 2·r·sin(h/2),
+    /// r the point's distance from the axis.
+    pub fn spread(&self, pivot: &Vector3<f64>, point: &Vector3<f64>) -> f64 {
+        let a = Vector3::from(self.axis_cloud);
+        let d = point - pivot;
+        let r = (d - a * a.dot(&d)).norm();
+        2.0 * r * (self.half_width_rad.min(std::f64::consts::PI) / 2.0).sin()
+    }
+}
+
+impl Registration {
+    /// How far each keypoint moves across the yaw arc ([`YawArc::spread`]),
+    /// metres, in `keypoints` order; None without an arc.
+    pub fn keypoint_spread_m(&self) -> Option<Vec<f64>> {
+        let arc = self.yaw_arc?;
+        let pivot = self.translation_cloud_from_canonical;
+        Some(self.keypoints.iter().map(|k| arc.spread(&pivot, &Vector3::from(k.position))).collect())
+    }
 }
 
 /// Where a registration's time went.
@@ -684,9 +728,10 @@ impl Registrar {
         // 11, 23, mean of the three: test / train keypoint p90 27.1 / 46.2
         // → 15.8 / 26.1 mm, train unambiguous p90 17.1 → 6.9, rotation
         // p90 39 / 71° → 28 / 40°; about 1 ms more a fit (bench_register).
+        // (fit, the arc's half width when the sweep ran, EM iterations)
         let sweep =
-            |lead: Fit, viewpoint: Option<Vector3<f64>>, free_space: Option<&FreeSpace>| -> (Fit, bool, usize) {
-                let (Some(up), true) = (up, opts.yaw_sweep_steps >= 4) else { return (lead, false, 0) };
+            |lead: Fit, viewpoint: Option<Vector3<f64>>, free_space: Option<&FreeSpace>| -> (Fit, Option<f64>, usize) {
+                let (Some(up), true) = (up, opts.yaw_sweep_steps >= 4) else { return (lead, None, 0) };
                 let sweep = YawSweep {
                     model: &models.polish.model,
                     normals: &models.polish.normals,
@@ -696,8 +741,8 @@ impl Registrar {
                     free_space,
                     origin: Vector3::from(self.space.norm.forward(&[0.0; 3])),
                 };
-                let (centre, open) = sweep.run(&lead, up, opts);
-                let Some(start) = centre else { return (lead, open, 0) };
+                let (centre, half_width) = sweep.run(&lead, up, opts);
+                let Some(start) = centre else { return (lead, Some(half_width), 0) };
                 let fit = em(
                     &models.race,
                     View { normals: &models.race_normals, viewpoint, occlusion: None },
@@ -712,9 +757,9 @@ impl Registrar {
                     &self.space.norm,
                 );
                 let n = fit.iterations;
-                (fit, open, n)
+                (fit, Some(half_width), n)
             };
-        let (swept, mut sweep_open, n) = sweep(lead, viewpoint, free_space.as_ref());
+        let (swept, mut arc_half_width, n) = sweep(lead, viewpoint, free_space.as_ref());
         iterations += n;
         lead = swept;
         // The race's winner is a better pose than the coarse stage's best: an
@@ -738,11 +783,12 @@ impl Registrar {
         // mm, train 57.6 / 37.6 / 23.5 → 52.6 / 21.8 / 23.5; medians equal or
         // better; drill, hammer, the mug on its side and the YCB mug unchanged.
         if raced_blind && viewpoint.is_some() {
-            let (swept, open, n) = sweep(lead, viewpoint, free_space.as_ref());
+            let (swept, half_width, n) = sweep(lead, viewpoint, free_space.as_ref());
             iterations += n;
             lead = swept;
-            sweep_open = open;
+            arc_half_width = half_width;
         }
+        let sweep_open = arc_half_width.is_some_and(|h| 2.0 * h > 30f64.to_radians());
         let ambiguous_pose = race_ambiguous || sweep_open;
         stage.race = ms(t_stage);
         let t_stage = Instant::now();
@@ -837,6 +883,13 @@ impl Registrar {
             elapsed_ms: t0.elapsed().as_secs_f64() * 1e3,
             stage_ms: stage,
             estimated_viewpoint: viewpoint.filter(|_| !given_viewpoint).map(|v| [v.x, v.y, v.z]),
+            yaw_arc: match (arc_half_width, up) {
+                (Some(half_width_rad), Some(up)) => {
+                    let a = sweep_axis(&fit.pose.r, up);
+                    Some(YawArc { axis_cloud: [a.x, a.y, a.z], half_width_rad })
+                }
+                _ => None,
+            },
         })
     }
 
@@ -1225,8 +1278,8 @@ struct YawSweep<'a> {
 
 impl YawSweep<'_> {
     /// The middle of the arc of turns scoring within the margin of the best
-    /// (None when that is the lead itself), and whether the arc is wider than 30°.
-    fn run(&self, lead: &Fit, up: Vector3<f64>, opts: &RegisterOptions) -> (Option<Pose>, bool) {
+    /// (None when that is the lead itself), and the arc's half width (radians).
+    fn run(&self, lead: &Fit, up: Vector3<f64>, opts: &RegisterOptions) -> (Option<Pose>, f64) {
         let k = opts.yaw_sweep_steps;
         let step = std::f64::consts::TAU / k as f64;
         // Turn about the line through the canonical frame's origin along the
@@ -1298,7 +1351,7 @@ impl YawSweep<'_> {
         while left + right + 1 < k && ok(best + right + 1) {
             right += 1;
         }
-        let open = (left + right) as f64 * step > 30f64.to_radians();
+        let half_width = (left + right) as f64 * step / 2.0;
         if trace_enabled() {
             let s: Vec<String> = scores.iter().map(|v| format!("{:.2}", v - scores[best])).collect();
             eprintln!(
@@ -1312,9 +1365,9 @@ impl YawSweep<'_> {
         let mid = best as f64 + (right as f64 - left as f64) / 2.0;
         let mid = if mid > k as f64 / 2.0 { mid - k as f64 } else { mid };
         if mid.abs() < 0.25 {
-            return (None, open);
+            return (None, half_width);
         }
-        (Some(turned(mid)), open)
+        (Some(turned(mid)), half_width)
     }
 }
 

@@ -796,3 +796,58 @@ fn a_200k_point_view_registers_from_its_working_subsample() {
         r_dense.fit.stray_points
     );
 }
+
+#[test]
+fn a_hidden_handle_leaves_a_yaw_arc_that_holds_the_truth() {
+    // Handle straight behind the mug: every turn that keeps it hidden fits,
+    // and the registration reports the arc, the true turn inside it, and a
+    // spread on the handle's keypoint but none on the base centre (on the
+    // axis). Handle towards the camera: the view settles the turn.
+    let reg = mug_registrar();
+    let t = Translation3::new(0.03, -0.02, 0.0);
+    let centre = Point3::new(t.x, t.y, 0.05);
+    let step = std::f64::consts::TAU / RegisterOptions::default().yaw_sweep_steps as f64;
+    let index = |name: &str| reg.space.keypoints.iter().position(|k| k.name == name).unwrap();
+    let (handle, base) = (index("handle_middle"), index("base_centre"));
+    let mut report = Vec::new();
+    for test in tools::family(Category::Mug).unwrap().into_iter().filter(|i| i.split == Split::Test) {
+        for view in [1, 4] {
+            let cam = standard_view(view, 8, centre, test.mesh.diagonal(), Intrinsics::default()).unwrap();
+            let eye = cam.translation.vector;
+            let azimuth = (eye.y - t.y).atan2(eye.x - t.x);
+            for offset_deg in [0.0f64, 180.0] {
+                let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), azimuth + offset_deg.to_radians());
+                let (cloud, _) = capture(&test.mesh, &Isometry3::from_parts(t, rot), centre, view, 5 + view as u64);
+                let r = reg
+                    .register(&cloud, &RegisterOptions { viewpoint: Some(eye.into()), ..Default::default() })
+                    .unwrap();
+                let arc = r.yaw_arc.expect("a sweep ran: the up direction is given");
+                let spread = r.keypoint_spread_m().unwrap();
+                let error = (r.rotation_cloud_from_canonical * rot.inverse()).angle();
+                report.push(format!(
+                    "{} view {view} handle at {offset_deg}°: arc ±{:.0}°, error {:.0}°, spread handle {:.0} base {:.1} mm",
+                    test.name,
+                    arc.half_width_rad.to_degrees(),
+                    error.to_degrees(),
+                    spread[handle] * 1e3,
+                    spread[base] * 1e3
+                ));
+                let a = Vector3::from(arc.axis_cloud);
+                assert!(
+                    (a.norm() - 1.0).abs() < 1e-9 && a.z > 0.98,
+                    "{}: the mug's axis, upright",
+                    report.last().unwrap()
+                );
+                assert!(spread[base] < 0.003, "{}", report.last().unwrap());
+                if offset_deg == 0.0 {
+                    assert!(arc.half_width_rad < 1.5 * step, "{}", report.last().unwrap());
+                } else {
+                    assert!(arc.half_width_rad >= step, "{}", report.last().unwrap());
+                    assert!(error <= arc.half_width_rad + step / 2.0, "{}", report.last().unwrap());
+                    assert!(spread[handle] > 0.01, "{}", report.last().unwrap());
+                }
+            }
+        }
+    }
+    eprintln!("{}", report.join("\n"));
+}
