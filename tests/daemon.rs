@@ -215,6 +215,16 @@ fn assert_same_registration(got: &graspd_client::Registration, expected: &serde_
     let estimated: Option<Vec<f64>> = serde_json::from_value(expected["estimated_viewpoint"].clone()).unwrap();
     assert_eq!(got.viewpoint.estimated().map(|p| p.to_vec()), estimated, "estimated viewpoint");
     assert!(!matches!(got.viewpoint, graspd_client::Viewpoint::Given { .. }));
+    // The yaw arc: its half width travels as f32; the axis and spreads the SDK derives.
+    let arc = got.yaw_arc([0.0, 0.0, 1.0]).expect("assessed: the requests' up is z");
+    let close = |a: f64, b: &serde_json::Value| (a - b.as_f64().unwrap()).abs() < 1e-6;
+    assert!(close(arc.half_width_rad, &expected["yaw_arc"]["half_width_rad"]), "{arc:?}");
+    for (a, e) in arc.axis_cloud.iter().zip(expected["yaw_arc"]["axis_cloud"].as_array().unwrap()) {
+        assert!(close(*a, e), "{arc:?} against {}", expected["yaw_arc"]);
+    }
+    for (a, e) in arc.keypoint_spread_m.iter().zip(expected["yaw_arc"]["keypoint_spread_m"].as_array().unwrap()) {
+        assert!(close(*a, e), "{arc:?} against {}", expected["yaw_arc"]);
+    }
 }
 
 #[test]

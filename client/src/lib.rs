@@ -180,6 +180,23 @@ pub struct Fit {
     /// Points of the request set aside as stray before the fit (flying pixels,
     /// speckle, segmentation leaks); they count as outside in `inlier_fraction`.
     pub stray_points: u32,
+    /// The turns about the tool's upright axis that explain the view about as
+    /// well as the reported pose reach this far either way of it, radians; 0
+    /// when the view settles the turn; None when not assessed (no up
+    /// direction). See [`Registration::yaw_arc`].
+    pub yaw_half_width_rad: Option<f64>,
+}
+
+/// The arc of turns a view leaves open, in the cloud's frame.
+#[derive(Clone, Debug, Serialize)]
+pub struct YawArc {
+    /// The canonical axis nearest up (or up itself when none is within 10°):
+    /// the arc turns about it through the canonical origin (`pose.translation`).
+    pub axis_cloud: [f64; 3],
+    pub half_width_rad: f64,
+    /// How far each keypoint may lie from where it is reported (`keypoints`
+    /// order), metres: 2·r·sin(h/2), r its distance from the axis.
+    pub keypoint_spread_m: Vec<f64>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -195,6 +212,50 @@ pub struct Registration {
     pub keypoints: Vec<NamedPoint>,
     /// The camera position the fit used, in the cloud's frame, metres.
     pub viewpoint: Viewpoint,
+}
+
+impl Registration {
+    /// The arc of turns the view leaves open about the tool's upright axis,
+    /// for a request whose up direction (cloud frame) was `up`, with each
+    /// keypoint's spread across it (proto/README.md, `yaw_half_width_rad`);
+    /// None when the daemon did not assess it.
+    pub fn yaw_arc(&self, up: [f64; 3]) -> Option<YawArc> {
+        let h = self.fit.yaw_half_width_rad?;
+        let norm = |v: [f64; 3]| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        let n = norm(up);
+        if !(n > 0.0 && n.is_finite()) {
+            return None;
+        }
+        let up = [up[0] / n, up[1] / n, up[2] / n];
+        // The rotation's columns (the canonical axes in the cloud's frame), each turned towards up.
+        let [x, y, z, w] = self.pose.rotation_xyzw;
+        let columns = [
+            [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + z * w), 2.0 * (x * z - y * w)],
+            [2.0 * (x * y - z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + x * w)],
+            [2.0 * (x * z + y * w), 2.0 * (y * z - x * w), 1.0 - 2.0 * (x * x + y * y)],
+        ]
+        .map(|c| if dot(c, up) < 0.0 { [-c[0], -c[1], -c[2]] } else { c });
+        let nearest = columns.into_iter().max_by(|a, b| dot(*a, up).total_cmp(&dot(*b, up)))?;
+        let axis = if dot(nearest, up) > 10f64.to_radians().cos() {
+            let m = norm(nearest);
+            [nearest[0] / m, nearest[1] / m, nearest[2] / m]
+        } else {
+            up
+        };
+        let pivot = self.pose.translation;
+        let spread = self
+            .keypoints
+            .iter()
+            .map(|k| {
+                let d = [k.position[0] - pivot[0], k.position[1] - pivot[1], k.position[2] - pivot[2]];
+                let along = dot(d, axis);
+                let r = norm([d[0] - along * axis[0], d[1] - along * axis[1], d[2] - along * axis[2]]);
+                2.0 * r * (h.min(std::f64::consts::PI) / 2.0).sin()
+            })
+            .collect();
+        Some(YawArc { axis_cloud: axis, half_width_rad: h, keypoint_spread_m: spread })
+    }
 }
 
 /// Where a registration's camera position came from.
@@ -970,6 +1031,7 @@ fn registration(r: &proto::Registration, category: &str, frame: &str) -> Registr
             confident: r.confident != 0,
             ambiguous_pose: r.ambiguous_pose != 0,
             stray_points: r.stray_points,
+            yaw_half_width_rad: (r.yaw_half_width_rad >= 0.0).then_some(f64::from(r.yaw_half_width_rad)),
         },
         keypoints: r.keypoints[..(r.keypoint_count as usize).min(proto::MAX_KEYPOINTS)]
             .iter()

@@ -434,7 +434,13 @@ pub struct Registration {
     pub stray_points: u32,
     /// One of [`viewpoint_source`].
     pub viewpoint_source: u32,
-    pub reserved: u32,
+    /// The turns about the tool's upright axis that explain the view about
+    /// as well as the reported pose reach this far either way of it,
+    /// radians (a mug whose handle is hidden: ±30-60°); 0 when the view
+    /// settles the turn; −1 when it was not assessed (no up direction).
+    /// The axis: the canonical axis nearest the request's up direction,
+    /// through `translation_cloud_from_canonical_m` (see README.md).
+    pub yaw_half_width_rad: f32,
     /// Canonical keypoints moved through the fitted deformation and pose.
     pub keypoints: [Keypoint; MAX_KEYPOINTS],
 }

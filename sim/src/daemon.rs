@@ -438,6 +438,7 @@ mod tests {
                     confident: true,
                     ambiguous_pose: false,
                     stray_points: 0,
+                    yaw_half_width_rad: Some(0.0),
                 },
                 keypoints: Vec::new(),
                 viewpoint: graspd_client::Viewpoint::None,

@@ -121,6 +121,9 @@ def _registration(r, cloud_frame):
             "ambiguous_pose": bool(r.ambiguous_pose),
             "stray_fraction": r.stray_points / r.points if r.points else 0.0,
             "stray_points": r.stray_points,
+            # The turns the view leaves open about the tool's upright axis, radians
+            # (0: settled; None: not assessed); proto/README.md, `yaw_half_width_rad`.
+            "yaw_half_width_rad": float(r.yaw_half_width_rad) if r.yaw_half_width_rad >= 0 else None,
         },
         "keypoints": keypoints,
         "cloud_frame": cloud_frame,

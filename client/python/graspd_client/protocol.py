@@ -151,7 +151,7 @@ class Registration(ctypes.Structure):
         ("ambiguous_pose", ctypes.c_uint32),
         ("stray_points", ctypes.c_uint32),
         ("viewpoint_source", ctypes.c_uint32),
-        ("reserved", ctypes.c_uint32),
+        ("yaw_half_width_rad", ctypes.c_float),
         ("keypoints", Keypoint * MAX_KEYPOINTS),
     ]
 

@@ -62,6 +62,7 @@ def test_register_answers_as_the_cli(client, fixture):
     assert r["fit"]["confident"] == expected["fit"]["confident"]
     assert r["fit"]["stray_points"] == expected["fit"]["stray_points"]
     assert r["estimated_viewpoint"] == expected["estimated_viewpoint"]
+    assert abs(r["fit"]["yaw_half_width_rad"] - expected["yaw_arc"]["half_width_rad"]) < 1e-6
     assert r["points"] == len(points)
     # Plain lists of triples go the same way as an array.
     assert client.register("mug", points.tolist())["latent"] == expected["latent"]

@@ -312,9 +312,9 @@ fn run(cli: &Cli) -> Result<(), Failure> {
             let is_grasp = matches!(cli.command, Command::Grasp(_));
             // The same JSON fields as `graspd register` / `graspd grasp` (what the daemon sends).
             let mut v = if is_grasp {
-                grasp_cli_json(&a.category, cloud.len(), &c.grasp_with(&a.category, &cloud, &co, timeout)?)
+                grasp_cli_json(&a.category, cloud.len(), &c.grasp_with(&a.category, &cloud, &co, timeout)?, co.up)
             } else {
-                let mut v = registration_cli_json(&c.register_with(&a.category, &cloud, &co, timeout)?);
+                let mut v = registration_cli_json(&c.register_with(&a.category, &cloud, &co, timeout)?, co.up);
                 v["category"] = serde_json::json!(a.category);
                 v["points"] = serde_json::json!(cloud.len());
                 v
@@ -677,7 +677,9 @@ fn soak(cli: &Cli, a: &SoakArgs, opts: ClientOptions) -> Result<(), Failure> {
 }
 
 /// A registration in `graspd register`'s JSON fields and units (fit in mm).
-fn registration_cli_json(r: &graspd_client::Registration) -> serde_json::Value {
+/// `up`: the request's up direction (the yaw arc's axis is found from it).
+fn registration_cli_json(r: &graspd_client::Registration, up: Option<[f32; 3]>) -> serde_json::Value {
+    let yaw_arc = up.and_then(|u| r.yaw_arc(u.map(f64::from)));
     serde_json::json!({
         "latent": r.latent,
         "pose": r.pose,
@@ -696,6 +698,8 @@ fn registration_cli_json(r: &graspd_client::Registration) -> serde_json::Value {
         "cloud_frame": r.cloud_frame,
         // As `graspd register`: the camera position assumed when none was given (null: none used).
         "estimated_viewpoint": r.viewpoint.estimated(),
+        // As `graspd register`: the turns the view leaves open (null: not assessed).
+        "yaw_arc": yaw_arc,
     })
 }
 
@@ -711,14 +715,14 @@ fn hand_cli_json(h: &graspd_client::HandConfiguration) -> serde_json::Value {
 }
 
 /// A grasp in `graspd grasp`'s JSON fields and units (what the daemon sends of it).
-fn grasp_cli_json(category: &str, points: usize, g: &graspd_client::Grasp) -> serde_json::Value {
+fn grasp_cli_json(category: &str, points: usize, g: &graspd_client::Grasp, up: Option<[f32; 3]>) -> serde_json::Value {
     let mut pregrasp = hand_cli_json(&g.pregrasp);
     pregrasp["collision_free"] = serde_json::json!(g.pregrasp_collision_free);
     pregrasp["min_clearance_mm"] = serde_json::json!(g.pregrasp_min_clearance_m * 1e3);
     serde_json::json!({
         "category": category,
         "points": points,
-        "registration": registration_cli_json(&g.registration),
+        "registration": registration_cli_json(&g.registration, up),
         "grasp": hand_cli_json(&g.grasp),
         "pregrasp": pregrasp,
         "task_space_distance_cm": g.task_space_distance_m * 1e2,

@@ -370,6 +370,7 @@ pub fn registration_to_wire(
     r.confident = reg.fit.confident as u32;
     r.ambiguous_pose = reg.fit.ambiguous_pose as u32;
     r.stray_points = reg.fit.stray_points.min(u32::MAX as usize) as u32;
+    r.yaw_half_width_rad = reg.yaw_arc.map_or(-1.0, |a| a.half_width_rad as f32);
     r.points = points.min(u32::MAX as usize) as u32;
     (r.viewpoint_source, r.viewpoint_cloud_m) = match (given, reg.estimated_viewpoint) {
         (Some(v), _) => (proto::viewpoint_source::GIVEN, v),
