@@ -69,6 +69,9 @@ pub struct DaemonGrasp {
     pub pregrasp_collision_free: bool,
     pub registration_confident: bool,
     pub ambiguous_pose: bool,
+    /// The turns about the tool's upright axis the view left open (half
+    /// width, rad; 0: settled; None: not assessed).
+    pub yaw_half_width_rad: Option<f64>,
     /// The daemon's warnings (e.g. `registration_not_confident`).
     pub warnings: Vec<String>,
     pub cloud_points: usize,
@@ -240,6 +243,7 @@ impl DaemonGrasper {
             pregrasp_collision_free: answer.pregrasp_collision_free,
             registration_confident: answer.registration.fit.confident,
             ambiguous_pose: answer.registration.fit.ambiguous_pose,
+            yaw_half_width_rad: answer.registration.fit.yaw_half_width_rad,
             warnings: answer.warnings.iter().map(|w| (*w).to_owned()).collect(),
             cloud_points: cloud.len(),
             latency_ms,
@@ -310,6 +314,7 @@ impl EngineBackend {
             pregrasp_collision_free: out.pregrasp.collision_free,
             registration_confident: reg.fit.confident,
             ambiguous_pose: reg.fit.ambiguous_pose,
+            yaw_half_width_rad: reg.yaw_arc.map(|a| a.half_width_rad),
             warnings,
             cloud_points: cloud.len(),
             latency_ms: 0.0,

@@ -239,6 +239,9 @@ pub struct GraspInfo {
     pub cloud_points: Option<usize>,
     pub registration_confident: Option<bool>,
     pub ambiguous_pose: Option<bool>,
+    /// From a camera view only: the turns about the tool's upright axis the
+    /// view left open, half width (rad; 0: settled).
+    pub yaw_half_width_rad: Option<f64>,
     /// From a camera view only: how far the registered canonical frame is from the
     /// tool's own frame (its origin's offset, m; its turn, rad) and the
     /// registered scale. A tool's mesh is given in its category's canonical
@@ -474,6 +477,7 @@ impl GraspPlanner {
                 info.cloud_points = Some(d.cloud_points);
                 info.registration_confident = Some(d.registration_confident);
                 info.ambiguous_pose = Some(d.ambiguous_pose);
+                info.yaw_half_width_rad = d.yaw_half_width_rad;
                 info.registered_offset_m = Some(d.tool_from_canonical.translation.norm());
                 info.registered_turn_rad = Some(d.tool_from_canonical.rotation.angle());
                 info.registered_scale = Some(d.tool_from_canonical.scale);
