@@ -20,6 +20,7 @@ a NumPy array, none through Python objects).
 import ctypes
 import enum
 import itertools
+import math
 import os
 import time
 
@@ -141,6 +142,45 @@ def _hand(h, actuated_names, joint_names):
         "joints": dict(zip(joint_names, h.joints)),
         "actuated": dict(zip(actuated_names, h.actuated)),
     }
+
+
+def yaw_arc(registration, up=(0.0, 0.0, 1.0)):
+    """The arc of turns the view leaves open about the tool's upright axis,
+    as ``graspd register --json`` reports it: ``axis_cloud``, ``half_width_rad``
+    and each keypoint's ``keypoint_spread_m`` (how far it may lie from where it
+    is reported: 2·r·sin(h/2), r its distance from the axis). ``up``: the
+    request's up direction in the cloud's frame. None when not assessed.
+    proto/README.md, ``yaw_half_width_rad``.
+    """
+    h = registration["fit"]["yaw_half_width_rad"]
+    if h is None or up is None:
+        return None
+    dot = lambda a, b: sum(p * q for p, q in zip(a, b))
+    n = math.sqrt(dot(up, up))
+    if not (n > 0 and math.isfinite(n)):
+        return None
+    up = [u / n for u in up]
+    x, y, z, w = registration["pose"]["rotation_xyzw"]
+    columns = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y + z * w), 2 * (x * z - y * w)],
+        [2 * (x * y - z * w), 1 - 2 * (x * x + z * z), 2 * (y * z + x * w)],
+        [2 * (x * z + y * w), 2 * (y * z - x * w), 1 - 2 * (x * x + y * y)],
+    ]
+    columns = [[-c for c in col] if dot(col, up) < 0 else col for col in columns]
+    nearest = max(columns, key=lambda col: dot(col, up))
+    if dot(nearest, up) > math.cos(math.radians(10)):
+        m = math.sqrt(dot(nearest, nearest))
+        axis = [c / m for c in nearest]
+    else:
+        axis = up
+    pivot = registration["pose"]["translation"]
+    spread = []
+    for k in registration["keypoints"]:
+        d = [p - q for p, q in zip(k["position"], pivot)]
+        along = dot(d, axis)
+        r = math.sqrt(sum((di - along * a) ** 2 for di, a in zip(d, axis)))
+        spread.append(2 * r * math.sin(min(h, math.pi) / 2))
+    return {"axis_cloud": axis, "half_width_rad": h, "keypoint_spread_m": spread}
 
 
 def _grasp(g, category, cloud_frame):

@@ -63,6 +63,9 @@ def test_register_answers_as_the_cli(client, fixture):
     assert r["fit"]["stray_points"] == expected["fit"]["stray_points"]
     assert r["estimated_viewpoint"] == expected["estimated_viewpoint"]
     assert abs(r["fit"]["yaw_half_width_rad"] - expected["yaw_arc"]["half_width_rad"]) < 1e-6
+    arc = gc.yaw_arc(r)
+    for key in ("axis_cloud", "keypoint_spread_m"):
+        assert np.allclose(arc[key], expected["yaw_arc"][key], atol=1e-6), key
     assert r["points"] == len(points)
     # Plain lists of triples go the same way as an array.
     assert client.register("mug", points.tolist())["latent"] == expected["latent"]

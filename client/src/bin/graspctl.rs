@@ -333,8 +333,17 @@ fn run(cli: &Cli) -> Result<(), Failure> {
                     if r["fit"]["ambiguous_pose"].as_bool() == Some(true) { ", AMBIGUOUS POSE" } else { "" },
                     t.rtt_ns as f64 * 1e-6
                 );
-                for k in r["keypoints"].as_array().into_iter().flatten() {
-                    println!("  {:<16} {}", k["name"].as_str().unwrap_or(""), k["position"]);
+                let half_width = r["yaw_arc"]["half_width_rad"].as_f64().unwrap_or(0.0);
+                if half_width > 0.0 {
+                    println!(
+                        "  the view leaves the turn about the tool's axis open by ±{:.0}°: spread per keypoint below",
+                        half_width.to_degrees()
+                    );
+                }
+                for (i, k) in r["keypoints"].as_array().into_iter().flatten().enumerate() {
+                    let s = r["yaw_arc"]["keypoint_spread_m"][i].as_f64().filter(|s| *s > 0.0);
+                    let s = s.map_or(String::new(), |s| format!("  ±{:.0} mm", s * 1e3));
+                    println!("  {:<16} {}{s}", k["name"].as_str().unwrap_or(""), k["position"]);
                 }
                 if is_grasp {
                     println!(

@@ -129,16 +129,25 @@ pub fn run(a: RegisterArgs) -> CliResult {
         print_json(&out)?;
     } else {
         println!(
-            "{}: scale {:.3}, inliers {:.1}%, residual {:.2} mm, {} ({:.1} ms)",
+            "{}: scale {:.3}, inliers {:.1}%, residual {:.2} mm, {}{} ({:.1} ms)",
             category.name(),
             reg.scale,
             reg.fit.inlier_fraction * 100.0,
             reg.fit.residual_mm,
             if reg.fit.confident { "confident" } else { "POOR FIT" },
+            if reg.fit.ambiguous_pose { ", AMBIGUOUS POSE" } else { "" },
             reg.elapsed_ms
         );
-        for k in &reg.keypoints {
-            println!("  {:<16} {:>9.4} {:>9.4} {:>9.4}", k.name, k.position[0], k.position[1], k.position[2]);
+        let spread = reg.keypoint_spread_m().unwrap_or_default();
+        if let Some(arc) = reg.yaw_arc.filter(|a| a.half_width_rad > 0.0) {
+            println!(
+                "  the view leaves the turn about the tool's axis open by ±{:.0}°: spread per keypoint below",
+                arc.half_width_rad.to_degrees()
+            );
+        }
+        for (i, k) in reg.keypoints.iter().enumerate() {
+            let s = spread.get(i).filter(|s| **s > 0.0).map_or(String::new(), |s| format!("  ±{:.0} mm", s * 1e3));
+            println!("  {:<16} {:>9.4} {:>9.4} {:>9.4}{s}", k.name, k.position[0], k.position[1], k.position[2]);
         }
     }
     Ok(())
