@@ -181,8 +181,6 @@ struct Trial {
     camera: CameraEstimate,
     /// The yaw arc's half width (radians) and each keypoint's spread across it (mm).
     arc: Option<(f64, Vec<f64>)>,
-    /// The arc's resolution: one sweep step, radians.
-    arc_step: f64,
 }
 
 /// What the registration knew of the camera in one trial.
@@ -255,12 +253,13 @@ pub fn evaluate(
         ),
         keypoint_depth_bias_mm: percentiles(trials.iter().map(|t| t.depth_bias_mm).collect()),
         estimated_viewpoint: viewpoint_errors(&trials),
-        yaw_arc: yaw_arc_calibration(&trials),
+        yaw_arc: yaw_arc_calibration(&trials, std::f64::consts::TAU / opts.register.yaw_sweep_steps.max(1) as f64),
     }
 }
 
-/// The open arcs against the truth (None: no view left one open).
-fn yaw_arc_calibration(trials: &[Trial]) -> Option<YawArcCalibration> {
+/// The open arcs against the truth (None: no view left one open). `sweep_step`
+/// (radians) is the arc's resolution: the truth may lie half a step beyond its edge.
+fn yaw_arc_calibration(trials: &[Trial], sweep_step: f64) -> Option<YawArcCalibration> {
     let open: Vec<(&Trial, f64, &[f64])> = trials
         .iter()
         .filter_map(|t| t.arc.as_ref().filter(|(h, _)| *h > 0.0).map(|(h, s)| (t, *h, s.as_slice())))
@@ -270,7 +269,7 @@ fn yaw_arc_calibration(trials: &[Trial]) -> Option<YawArcCalibration> {
     }
     let n = open.len() as f64;
     let rotation_within =
-        open.iter().filter(|(t, h, _)| t.rotation_error_deg.to_radians() <= h + t.arc_step / 2.0).count() as f64;
+        open.iter().filter(|(t, h, _)| t.rotation_error_deg.to_radians() <= h + sweep_step / 2.0).count() as f64;
     let pairs: Vec<(f64, f64)> =
         open.iter().flat_map(|(t, _, s)| t.kp[0].iter().copied().zip(s.iter().copied())).collect();
     let within = pairs.iter().filter(|(e, s)| *e <= s + KEYPOINT_SPREAD_ALLOWANCE_MM).count() as f64;
@@ -451,7 +450,6 @@ fn trial(
         rotation_error_deg,
         camera,
         arc: reg.yaw_arc.zip(reg.keypoint_spread_m()).map(|(a, s)| (a.half_width_rad, s.iter().map(|x| x * 1e3).collect())),
-        arc_step: std::f64::consts::TAU / opts.register.yaw_sweep_steps.max(1) as f64,
     })
     .inspect(|t| {
         if trace {
