@@ -15,6 +15,9 @@
 
 use iceoryx2::prelude::ZeroCopySend;
 
+#[cfg(feature = "json")]
+pub mod json;
+
 /// Bumped whenever a message layout or a field's meaning changes. The type
 /// names carry the major version too (`graspd.v2.*`), so a client built
 /// against another layout cannot even open the services.

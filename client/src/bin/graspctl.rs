@@ -267,7 +267,7 @@ fn run(cli: &Cli) -> Result<(), Failure> {
         Command::Stats => {
             let mut c = Client::connect(opts)?;
             let s = c.stats()?;
-            let v = stats_json(&s);
+            let v = proto::json::stats_json(&s);
             print(cli.json, &v, || {
                 println!(
                     "up {:.1} s, RSS {:.1} MiB, {} clients, {} queued",
@@ -361,36 +361,6 @@ fn run(cli: &Cli) -> Result<(), Failure> {
         Command::Soak(a) => soak(cli, a, opts)?,
     }
     Ok(())
-}
-
-fn stats_json(s: &proto::StatsResponse) -> serde_json::Value {
-    let methods: Vec<serde_json::Value> = s.methods[..(s.method_count as usize).min(proto::MAX_METHODS)]
-        .iter()
-        .map(|m| {
-            let by_status: serde_json::Map<String, serde_json::Value> = StatusCode::ALL
-                .iter()
-                .filter(|c| m.by_status[**c as usize] > 0)
-                .map(|c| (c.name().to_owned(), serde_json::json!(m.by_status[*c as usize])))
-                .collect();
-            serde_json::json!({
-                "method": proto::text_lossy(&m.name),
-                "requests": m.requests,
-                "errors": m.requests - m.by_status[0],
-                "by_status": by_status,
-                "slow": m.slow,
-                "in_flight": m.in_flight,
-                "latency_us": {"p50": m.latency_p50_us, "p90": m.latency_p90_us, "p99": m.latency_p99_us, "max": m.latency_max_us, "window": m.window},
-                "compute_us": {"p50": m.compute_p50_us, "p99": m.compute_p99_us},
-            })
-        })
-        .collect();
-    serde_json::json!({
-        "uptime_s": s.uptime_ns as f64 * 1e-9,
-        "rss_bytes": s.rss_bytes,
-        "clients_connected": s.clients_connected,
-        "queued": s.queued,
-        "methods": methods,
-    })
 }
 
 /// Nearest-rank percentile of unsorted values, microseconds from nanoseconds.

@@ -13,7 +13,7 @@
 use super::config::{Config, Waiting};
 use super::engine::{Engine, Status};
 use super::janitor::{cleanup_dead_peers_guarded, ipc_config, start_janitors};
-use super::stats::{rss_bytes, stats_json, Stats};
+use super::stats::{rss_bytes, Stats};
 use graspd_proto::{self as proto, Method, NoPayload, Point, RequestHeader, ResponseHeader, StatusCode};
 use iceoryx2::active_request::ActiveRequest;
 use iceoryx2::port::listener::Listener;
@@ -1182,7 +1182,7 @@ fn lead(shared: &Shared, ep: &Endpoints, waitset: Option<&WaitSet<Ipc>>, st: &mu
             if let Some(every) = metrics {
                 if st.last_metrics.elapsed() >= every {
                     st.last_metrics = Instant::now();
-                    tracing::info!(target: "graspd::metrics", "{}", stats_json(&shared.stats(ep.clients_connected())));
+                    tracing::info!(target: "graspd::metrics", "{}", proto::json::stats_json(&shared.stats(ep.clients_connected())));
                 }
             }
         }

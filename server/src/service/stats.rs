@@ -119,36 +119,6 @@ pub fn rss_bytes() -> u64 {
     pages * 4096
 }
 
-/// A Stats body as JSON (the --metrics log line, `graspctl stats --json` has the same shape).
-pub fn stats_json(s: &proto::StatsResponse) -> serde_json::Value {
-    let methods: Vec<serde_json::Value> = s.methods[..(s.method_count as usize).min(proto::MAX_METHODS)]
-        .iter()
-        .map(|m| {
-            let by_status: serde_json::Map<String, serde_json::Value> = StatusCode::ALL
-                .iter()
-                .filter(|c| m.by_status[**c as usize] > 0)
-                .map(|c| (c.name().to_owned(), serde_json::json!(m.by_status[*c as usize])))
-                .collect();
-            serde_json::json!({
-                "method": proto::text_lossy(&m.name),
-                "requests": m.requests,
-                "by_status": by_status,
-                "slow": m.slow,
-                "in_flight": m.in_flight,
-                "latency_us": {"p50": m.latency_p50_us, "p90": m.latency_p90_us, "p99": m.latency_p99_us, "max": m.latency_max_us, "window": m.window},
-                "compute_us": {"p50": m.compute_p50_us, "p99": m.compute_p99_us},
-            })
-        })
-        .collect();
-    serde_json::json!({
-        "uptime_s": s.uptime_ns as f64 * 1e-9,
-        "rss_bytes": s.rss_bytes,
-        "clients_connected": s.clients_connected,
-        "queued": s.queued,
-        "methods": methods,
-    })
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
