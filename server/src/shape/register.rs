@@ -187,7 +187,7 @@ pub struct RegisterOptions {
     /// turned ±90° about its x axis, at each of the `yaws`), besides upright.
     /// None: only for categories whose canonical's principal axes are too
     /// alike to settle the pose from a view's, and then only where the view
-    /// does not show a tool standing upright ([`UPRIGHT_SIDE_FACING`]) (the mug: a mug knocked over,
+    /// does not show a tool standing upright (`UPRIGHT_SIDE_FACING`) (the mug: a mug knocked over,
     /// test views on its side, 8 views: keypoint error median / p90 9.1 / 115
     /// → 4.0 / 9.2 mm). It doubles the coarse stage's hypotheses (mug fit p50
     /// 5.9 → 7.5 ms, `bench_register`), and for an elongated tool the principal axes already cover its
