@@ -18,12 +18,11 @@
 //! semantic keypoints and still move the fingers' targets.
 
 use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
-use crate::geometry::sample_points;
+use crate::geometry::{sample_points, PointTree};
 use crate::shape::cpd::{self, EmOptions, NonRigidOptions};
 use crate::shape::estep::P3;
 use crate::shape::{RegisterOptions, Registrar};
 use crate::tools::{Instance, Split};
-use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use kiddo::SquaredEuclidean;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
@@ -524,7 +523,7 @@ pub fn chamfer_mm(a: &[P3], b: &[P3]) -> f64 {
         return f64::INFINITY;
     }
     let one_way = |from: &[P3], to: &[P3]| {
-        let tree: ImmutableKdTree<f64, u32, 3, 32> = ImmutableKdTree::new_from_slice(to);
+        let tree = PointTree::new_from_slice(to);
         from.iter().map(|p| tree.nearest_one::<SquaredEuclidean>(p).distance.sqrt()).sum::<f64>() / from.len() as f64
     };
     0.5 * (one_way(a, b) + one_way(b, a)) * 1e3

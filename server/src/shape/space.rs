@@ -439,8 +439,7 @@ impl ShapeSpace {
         if self.surface.len() < 16 {
             return model;
         }
-        let tree: kiddo::immutable::float::kdtree::ImmutableKdTree<f64, u32, 3, 32> =
-            kiddo::immutable::float::kdtree::ImmutableKdTree::new_from_slice(&self.surface);
+        let tree = crate::geometry::PointTree::new_from_slice(&self.surface);
         // The patch grows with the distance to the surface: a point 6 cm above a
         // thin handle needs a patch wide enough to pin the handle's roll, or the
         // fitted rotation swings it (measured: 13 cm off on hammers with 16 samples).
@@ -634,7 +633,7 @@ impl AnchoredModel {
 #[derive(Clone, Debug)]
 pub struct LinearModel {
     pub base: Vec<P3>,
-    /// basis[j][i]: displacement of point i per unit of ℓ_j.
+    /// `basis[j][i]`: displacement of point i per unit of ℓ_j.
     pub basis: Vec<Vec<P3>>,
 }
 
