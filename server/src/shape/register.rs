@@ -160,7 +160,7 @@ pub struct RegisterOptions {
     /// 11.4 / 22.8 with a third of training views flagged), drill and hammer the same.
     pub yaw_sweep_margin: f64,
     /// Screen the sweep's turns on the race's sparser model first and score
-    /// only those near its best on the dense one (see [`SWEEP_SCREEN_MARGIN`]).
+    /// only those near its best on the dense one (see `SWEEP_SCREEN_MARGIN`).
     /// Measured (`VIEWPOINT=known bench_register C 3`, two alternating pairs,
     /// race stage p50): mug 3.6 / 3.5 → 2.1 / 2.2 ms, drill 2.7 / 3.0 → 1.3 /
     /// 1.4, hammer 3.2 / 3.1 → 1.5 / 1.7; eval transfer keypoint errors
@@ -205,7 +205,7 @@ pub struct RegisterOptions {
     /// The plane the tool rests on, when the caller knows it (a table top):
     /// up·x = this height in the cloud's frame (needs `up`). The latent fits
     /// (refine and polish) then hold the tool's lowest point on it (see
-    /// [`Support`]). A view from above shows nothing of a tool's underside:
+    /// `Support`). A view from above shows nothing of a tool's underside:
     /// without it the completed shape's lowest point floated or sank 2-3 mm
     /// (10th and 90th percentiles, eval transfer --views 12 --seed 7), and
     /// the latent and scale that set the tool's height with it. Measured,
@@ -221,7 +221,7 @@ pub struct RegisterOptions {
     /// 1.29 / 1.38.
     pub support_height: Option<f64>,
     /// How strongly the support holds, as a share of the observed points'
-    /// weight (see [`Support`]). 0.1 measured alike (seed 7, test median /
+    /// weight (see `Support`). 0.1 measured alike (seed 7, test median /
     /// p90: mug 1.80 / 10.7, drill 2.17 / 5.2, hammer 1.67 / 3.8 mm).
     pub support_weight: f64,
     pub seed: u64,
@@ -276,8 +276,11 @@ impl Default for RegisterOptions {
 
 /// A view of a tool standing upright shows mostly its sides, facing all
 /// round: with `up` known, at least this share of the view facing sideways
-/// and those normals spread ([`UPRIGHT_ONE_WAY`]; `side_facing`), the lying
-/// starts are skipped even where the category has them by default.
+/// and those normals spread ([`UPRIGHT_ONE_WAY`]; `side_facing`), the view
+/// is taken to show the tool standing: the lying starts are skipped even
+/// where the category has them by default, and so are the principal-axis
+/// starts (`Starts`). Only where the lying starts are the category's default
+/// (the mug) and the options leave them open.
 /// Measured (mug, `eval transfer --views 12`, seeds 7 / 11 / 23, test and
 /// train views, 936 registrations each): upright share 0.81-1.00 and one-way
 /// resultant 0.09-0.50, all 936 skipped; on its side (`--on-side`) share
@@ -293,6 +296,26 @@ const UPRIGHT_SIDE_FACING: f64 = 0.75;
 const UPRIGHT_ONE_WAY: f64 = 0.7;
 /// |normal · up| below this (about 20° from horizontal) counts as facing sideways.
 const SIDE_FACING_MAX_UP: f64 = 0.34;
+
+/// Which of the coarse stage's starts `Registrar::hypotheses` makes besides
+/// the upright ones at each yaw (always made when `up` is known).
+#[derive(Clone, Copy, Debug)]
+struct Starts {
+    /// The view's principal axes onto the canonical's (4 sign choices). Made
+    /// unless the view was measured standing (`UPRIGHT_SIDE_FACING`): then
+    /// the upright starts cover them, and a tilted start only wins a wrong
+    /// pose now and then. Always made without `up`. Measured, skipping them
+    /// on standing views (mug, `eval transfer --views 12`, seeds 7 / 11 /
+    /// 23, keypoint error median / p90): test identical (1.83 / 9.14 mm),
+    /// train 1.84 / 18.85 → 1.81 / 14.92 mm; with `--unknown-viewpoint
+    /// --unknown-table` test p90 22.45 → 21.30, train 2.41 / 27.03 → 2.39 /
+    /// 25.11 mm; 2 mm noise and 10 % outliers (seed 7) test identical, train
+    /// 2.22 / 20.95 → 2.15 / 20.40 mm. Mug fit p50 6.11-6.20 → 5.74-5.88 ms
+    /// (`bench_register`, coarse stage 1.05 → 0.70 ms).
+    principal_axes: bool,
+    /// The canonical lying on its side at each yaw (`lying_hypotheses`).
+    lying: bool,
+}
 
 /// Inlier fraction from which a fit is called confident. Measured: correct
 /// categories 0.8-0.98 on single views, another category's tool 0.14-0.48.
@@ -608,20 +631,23 @@ impl Registrar {
         let mut stage = StageTimes::default();
         let t_stage = Instant::now();
         // Coarse: every hypothesis, mean shape, similarity only.
-        let lying = match (opts.lying_hypotheses, up) {
-            (Some(lying), _) => lying,
-            (None, Some(up)) if self.lying_by_default => {
+        let standing = match up {
+            Some(up) if self.lying_by_default && opts.lying_hypotheses.is_none() => {
                 let (side_facing, one_way) = side_facing(&fine_x, &up);
                 if trace_enabled() {
                     eprintln!(
                         "  side-facing normals {side_facing:.3} (upright from {UPRIGHT_SIDE_FACING}), one way {one_way:.3} (at most {UPRIGHT_ONE_WAY})"
                     );
                 }
-                side_facing < UPRIGHT_SIDE_FACING || one_way > UPRIGHT_ONE_WAY
+                side_facing >= UPRIGHT_SIDE_FACING && one_way <= UPRIGHT_ONE_WAY
             }
-            (None, _) => self.lying_by_default,
+            _ => false,
         };
-        let hyps = self.hypotheses(&fine_x, up, opts.yaws, lying);
+        let starts = Starts {
+            principal_axes: !standing,
+            lying: opts.lying_hypotheses.unwrap_or(self.lying_by_default && !standing),
+        };
+        let hyps = self.hypotheses(&fine_x, up, opts.yaws, starts);
         let coarse_fit = |pose: Pose, sigma2: Option<f64>, iters: usize| {
             let view = View { normals: coarse_normals, viewpoint, occlusion: None };
             em(
@@ -972,14 +998,19 @@ impl Registrar {
         Pose { r, t: reg.translation_cloud_from_canonical + reg.scale * (r * c), s: reg.scale * norm.scale }
     }
 
-    fn hypotheses(&self, x: &[P3], up: Option<Vector3<f64>>, yaws: usize, lying: bool) -> Vec<Pose> {
+    fn hypotheses(&self, x: &[P3], up: Option<Vector3<f64>>, yaws: usize, starts: Starts) -> Vec<Pose> {
         // Axes and centre of the view's core: stray points (segmentation
         // leaks, flying pixels) would drag a plain centroid and tilt the axes.
         let (ax_o, mu_o) = principal_axes(&trimmed_core(x));
         let s0 = self.space.norm.scale;
         let mut rots = Vec::new();
         // Principal axes of the view onto the canonical's (4 proper sign choices).
-        for (s1, s2) in [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] {
+        let signs = if starts.principal_axes || up.is_none() {
+            &[(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)][..]
+        } else {
+            &[]
+        };
+        for &(s1, s2) in signs {
             let d = Matrix3::from_diagonal(&Vector3::new(s1, s2, 1.0));
             let mut r = ax_o * d * self.axes.transpose();
             if r.determinant() < 0.0 {
@@ -999,7 +1030,7 @@ impl Registrar {
                         k as f64 * std::f64::consts::TAU / yaws as f64,
                     );
                     rots.push(*(yaw * align).matrix());
-                    if lying {
+                    if starts.lying {
                         for a in [std::f64::consts::FRAC_PI_2, -std::f64::consts::FRAC_PI_2] {
                             let lie = Rotation3::from_axis_angle(&Vector3::x_axis(), a);
                             rots.push(*(yaw * align * lie).matrix());
@@ -2224,8 +2255,7 @@ fn side_facing(x: &[P3], up: &Vector3<f64>) -> (f64, f64) {
     if x.len() < 2 * NEIGHBOURS {
         return (0.0, 1.0);
     }
-    let tree: kiddo::immutable::float::kdtree::ImmutableKdTree<f64, u32, 3, 32> =
-        kiddo::immutable::float::kdtree::ImmutableKdTree::new_from_slice(x);
+    let tree = crate::geometry::PointTree::new_from_slice(x);
     let k = std::num::NonZeroUsize::new(NEIGHBOURS).expect("12 > 0");
     // Any two horizontal axes for the azimuth.
     let e1 = up.cross(&if up.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() }).normalize();

@@ -437,7 +437,9 @@ fn a_mug_on_its_side_registers_the_right_way_round() {
 #[test]
 fn an_upright_mug_is_not_started_lying() {
     // A view of a standing mug shows mostly its sides (`UPRIGHT_SIDE_FACING`):
-    // the lying starts, which a mug on its side needs, would only cost time.
+    // the lying starts, which a mug on its side needs, would only cost time,
+    // and the principal-axis starts only win a wrong pose now and then. It
+    // starts upright only, once per yaw.
     let reg = mug_registrar();
     let test = tools::family(Category::Mug).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap();
     for (k, yaw) in [0.4f64, 2.0, 3.6, 5.2].iter().enumerate() {
@@ -446,7 +448,12 @@ fn an_upright_mug_is_not_started_lying() {
         let opts = RegisterOptions { viewpoint: Some(cam_pose.translation.vector.into()), ..Default::default() };
         let fewer = reg.register(&cloud, &opts).unwrap();
         let every = reg.register(&cloud, &RegisterOptions { lying_hypotheses: Some(true), ..opts }).unwrap();
-        assert!(fewer.hypotheses < every.hypotheses, "view {k}: {} of {} starts", fewer.hypotheses, every.hypotheses);
+        assert_eq!(
+            fewer.hypotheses, opts.yaws,
+            "view {k}: {} starts, {} with every kind",
+            fewer.hypotheses, every.hypotheses
+        );
+        assert!(every.hypotheses > 3 * opts.yaws, "view {k}: {} starts with every kind", every.hypotheses);
         // Standing, whichever way its handle turned (a hidden handle leaves the yaw open).
         let tilt = (fewer.rotation_cloud_from_canonical * Vector3::z()).angle(&Vector3::z()).to_degrees();
         assert!(tilt < 10.0, "view {k}: registered {tilt:.1}° off upright");
