@@ -11,6 +11,7 @@ use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics
 use crate::geometry::sample_points;
 use crate::tools::{self, Category, Split};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use rand::SeedableRng;
 use std::sync::OnceLock;
 
 fn mug_space() -> &'static ShapeSpace {
@@ -53,10 +54,21 @@ fn capture(
     view: usize,
     seed: u64,
 ) -> (Vec<Point3<f64>>, Isometry3<f64>) {
+    capture_with(mesh, pose, centre, view, seed, DepthNoise::default())
+}
+
+/// As `capture`, with the camera's noise given.
+fn capture_with(
+    mesh: &crate::geometry::TriMesh,
+    pose: &Isometry3<f64>,
+    centre: Point3<f64>,
+    view: usize,
+    seed: u64,
+    noise: DepthNoise,
+) -> (Vec<Point3<f64>>, Isometry3<f64>) {
     let scene = Scene::new(mesh, *pose, Some(0.0)).unwrap();
     let cam_pose = standard_view(view, 8, centre, mesh.diagonal(), Intrinsics::default()).unwrap();
-    let cam =
-        DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: cam_pose, noise: DepthNoise::default() };
+    let cam = DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: cam_pose, noise };
     (cam.capture(&scene, seed).unwrap().points_world, cam_pose)
 }
 
@@ -879,4 +891,28 @@ fn a_hidden_handle_leaves_a_yaw_arc_that_holds_the_truth() {
         }
     }
     eprintln!("{}", report.join("\n"));
+}
+
+#[test]
+fn a_noisy_standing_mug_is_still_told_standing() {
+    // Under 2 mm depth noise and 10 % outliers the gate's normals scatter:
+    // from 12 neighbours 15 of these 24 views passed, from 24 (`side_facing`) all.
+    let reg = mug_registrar();
+    let mut kept_every_start = Vec::new();
+    for inst in tools::family(Category::Mug).unwrap().iter().filter(|i| i.split == Split::Test) {
+        for view in 0..8 {
+            let yaw = 0.7 * view as f64;
+            let noise = DepthNoise { sigma_m: 0.002, ..DepthNoise::default() };
+            let centre = on_table(yaw) * Point3::new(0.0, 0.0, 0.05);
+            let (mut cloud, cam) = capture_with(&inst.mesh, &on_table(yaw), centre, view, 9, noise);
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(view as u64);
+            crate::eval::transfer::add_outliers(&mut cloud, 0.1, &mut rng);
+            let opts = RegisterOptions { viewpoint: Some(cam.translation.vector.into()), ..Default::default() };
+            let r = reg.register(&cloud, &opts).unwrap();
+            if r.hypotheses != opts.yaws {
+                kept_every_start.push((inst.name.clone(), view, r.hypotheses));
+            }
+        }
+    }
+    assert!(kept_every_start.is_empty(), "views not told standing (tool, view, starts): {kept_every_start:?}");
 }
