@@ -15,6 +15,12 @@
 //! upright at several yaws) are first scored cheaply on small subsets with
 //! the mean shape; the best survive to the full latent fit, which ends with a
 //! few iterations on a model twice as dense (the polish).
+//!
+//! Here: the options, the result, the stages in order (`Registrar::register`)
+//! and the EM they share. Beside it: `starts` (the coarse stage's starting
+//! poses and the test of a view showing its tool standing), `sweep` (the
+//! turn about the tool's axis a view leaves open), `viewpoint` (the camera's
+//! position when not given) and `surfels` (the polish's anisotropic fit).
 
 use super::cpd::{weighted_similarity, Normalization};
 use super::estep::{dist2, dot, initial_sigma2, EStep, Posteriors, P3};
@@ -25,12 +31,20 @@ use super::space::{AnchoredModel, LinearModel, NamedPoint, ShapeSpace};
 use crate::simd::clear_upper_state;
 use faer::prelude::*;
 use faer::Side;
-use nalgebra::{Matrix3, Point3, Rotation3, SymmetricEigen, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
 use rand::SeedableRng;
 use serde::Serialize;
 use std::time::Instant;
 
+mod starts;
 mod surfels;
+mod sweep;
+mod viewpoint;
+
+use starts::{principal_frame, side_facing, Starts, UPRIGHT_ONE_WAY, UPRIGHT_SIDE_FACING};
+
+use sweep::{sweep_axis, YawSweep};
+use viewpoint::estimate_viewpoint;
 
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum RegisterError {
@@ -272,51 +286,6 @@ impl Default for RegisterOptions {
             seed: 0,
         }
     }
-}
-
-/// A view of a tool standing upright shows mostly its sides, facing all
-/// round: with `up` known, at least this share of the view facing sideways
-/// and those normals spread ([`UPRIGHT_ONE_WAY`]; `side_facing`), the view
-/// is taken to show the tool standing: the lying starts are skipped even
-/// where the category has them by default, and so are the principal-axis
-/// starts (`Starts`). Only where the lying starts are the category's default
-/// (the mug) and the options leave them open.
-/// Measured (mug, `eval transfer --views 12`, seeds 7 / 11 / 23, test and
-/// train views, 936 registrations each): upright share 0.81-1.00 and one-way
-/// resultant 0.09-0.50, all 936 skipped; on its side (`--on-side`) share
-/// 0.04-0.62, none skipped. With 10 % outliers and 2 mm noise 207 of 312
-/// upright views skipped with 12-neighbour normals, all 312 with 24 (see
-/// `side_facing`; there train keypoint median / p90 2.20 / 20.80 → 2.18 /
-/// 20.59 mm, means of seeds 7 / 11 / 23, test identical). Results: upright test keypoints identical,
-/// train p90 23.55 → 18.85 mm (a lying start had won a few wrong poses),
-/// on-side identical; mug fit p50 8.6-8.9 → 7.8-7.9 ms (`bench_register`,
-/// coarse stage 2.4 → 1.4 ms). A tilted, noisy or top-down view falls
-/// outside and keeps every start.
-const UPRIGHT_SIDE_FACING: f64 = 0.75;
-/// ... and at most this axial resultant of their azimuths: a flat face
-/// turned sideways (a mug on its side seen against its base) is not a standing tool.
-const UPRIGHT_ONE_WAY: f64 = 0.7;
-/// |normal · up| below this (about 20° from horizontal) counts as facing sideways.
-const SIDE_FACING_MAX_UP: f64 = 0.34;
-
-/// Which of the coarse stage's starts `Registrar::hypotheses` makes besides
-/// the upright ones at each yaw (always made when `up` is known).
-#[derive(Clone, Copy, Debug)]
-struct Starts {
-    /// The view's principal axes onto the canonical's (4 sign choices). Made
-    /// unless the view was measured standing (`UPRIGHT_SIDE_FACING`): then
-    /// the upright starts cover them, and a tilted start only wins a wrong
-    /// pose now and then. Always made without `up`. Measured, skipping them
-    /// on standing views (mug, `eval transfer --views 12`, seeds 7 / 11 /
-    /// 23, keypoint error median / p90): test identical (1.83 / 9.14 mm),
-    /// train 1.84 / 18.85 → 1.81 / 14.92 mm; with `--unknown-viewpoint
-    /// --unknown-table` test p90 22.45 → 21.30, train 2.41 / 27.03 → 2.39 /
-    /// 25.11 mm; 2 mm noise and 10 % outliers (seed 7) test identical, train
-    /// 2.22 / 20.95 → 2.15 / 20.40 mm. Mug fit p50 6.11-6.20 → 5.74-5.88 ms
-    /// (`bench_register`, coarse stage 1.05 → 0.70 ms).
-    principal_axes: bool,
-    /// The canonical lying on its side at each yaw (`lying_hypotheses`).
-    lying: bool,
 }
 
 /// Inlier fraction from which a fit is called confident. Measured: correct
@@ -1000,62 +969,6 @@ impl Registrar {
         Pose { r, t: reg.translation_cloud_from_canonical + reg.scale * (r * c), s: reg.scale * norm.scale }
     }
 
-    fn hypotheses(&self, x: &[P3], up: Option<Vector3<f64>>, yaws: usize, starts: Starts) -> Vec<Pose> {
-        // Axes and centre of the view's core: stray points (segmentation
-        // leaks, flying pixels) would drag a plain centroid and tilt the axes.
-        let (ax_o, mu_o) = principal_axes(&trimmed_core(x));
-        let s0 = self.space.norm.scale;
-        let mut rots = Vec::new();
-        // Principal axes of the view onto the canonical's (4 proper sign choices).
-        let signs = if starts.principal_axes || up.is_none() {
-            &[(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)][..]
-        } else {
-            &[]
-        };
-        for &(s1, s2) in signs {
-            let d = Matrix3::from_diagonal(&Vector3::new(s1, s2, 1.0));
-            let mut r = ax_o * d * self.axes.transpose();
-            if r.determinant() < 0.0 {
-                let d = Matrix3::from_diagonal(&Vector3::new(s1, s2, -1.0));
-                r = ax_o * d * self.axes.transpose();
-            }
-            rots.push(r);
-        }
-        match up {
-            Some(up) => {
-                // Upright at `yaws` yaws.
-                let align = Rotation3::rotation_between(&Vector3::z(), &up)
-                    .unwrap_or_else(|| Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI));
-                for k in 0..yaws {
-                    let yaw = Rotation3::from_axis_angle(
-                        &nalgebra::Unit::new_normalize(up),
-                        k as f64 * std::f64::consts::TAU / yaws as f64,
-                    );
-                    rots.push(*(yaw * align).matrix());
-                    if starts.lying {
-                        for a in [std::f64::consts::FRAC_PI_2, -std::f64::consts::FRAC_PI_2] {
-                            let lie = Rotation3::from_axis_angle(&Vector3::x_axis(), a);
-                            rots.push(*(yaw * align * lie).matrix());
-                        }
-                    }
-                }
-            }
-            None => {
-                // No prior: the 24 rotations of the cube.
-                for r in cube_rotations() {
-                    rots.push(r);
-                }
-            }
-        }
-        rots.into_iter()
-            .map(|r| {
-                let s = s0;
-                // Model centroid onto the view's centroid.
-                Pose { r, s, t: mu_o - s * (r * self.centroid) }
-            })
-            .collect()
-    }
-
     /// `stray_points` of the cloud's `cloud_points` were set aside before the fit.
     /// `x`: the fit's subsample, `view`: every point kept after stray removal.
     fn quality(
@@ -1332,126 +1245,6 @@ impl View<'_> {
     }
 }
 
-/// The turns about the up axis of a fitted pose that explain a view: each
-/// turned pose gets its translation re-fitted (one EM half-step) and is scored
-/// like the race (likelihood per point plus the free-space penalty).
-struct YawSweep<'a> {
-    model: &'a LinearModel,
-    normals: &'a [P3],
-    /// A sparser level (points and normals) that screens the turns first:
-    /// only those it scores within [`SWEEP_SCREEN_MARGIN`] of its best are
-    /// scored on `model`.
-    screen: Option<(&'a LinearModel, &'a [P3])>,
-    x: &'a [P3],
-    viewpoint: Option<Vector3<f64>>,
-    free_space: Option<&'a FreeSpace>,
-    /// The canonical frame's origin in normalised model coordinates.
-    origin: Vector3<f64>,
-}
-
-impl YawSweep<'_> {
-    /// The middle of the arc of turns scoring within the margin of the best
-    /// (None when that is the lead itself), and the arc's half width (radians).
-    fn run(&self, lead: &Fit, up: Vector3<f64>, opts: &RegisterOptions) -> (Option<Pose>, f64) {
-        let k = opts.yaw_sweep_steps;
-        let step = std::f64::consts::TAU / k as f64;
-        // Turn about the line through the canonical frame's origin along the
-        // tool's own axis nearest up: the category's main body axis (the
-        // built-in families are built so).
-        let origin = self.origin;
-        let pivot = Vector3::from(lead.pose.apply(&[origin.x, origin.y, origin.z]));
-        let axis = sweep_axis(&lead.pose.r, up);
-        // Truncated sums by blocks once σ is small (`new_estep`): a turn moves
-        // the model rigidly, so its k-d blocks stay compact and are reused from
-        // turn to turn, where a neighbour list had to be rebuilt (the sweep
-        // was dense before: measured, `bench_register` with a timer on the
-        // sweep, mug 1.7 → 1.45 ms; eval transfer --views 12 --seed 7, all
-        // three categories: every figure equal to 1e-6).
-        let mut estep = new_estep(self.x);
-        let mut weights = Vec::new();
-        // The lead turned by `steps` sweep steps (fractions allowed) about the pivot line.
-        let turned = |steps: f64| -> Pose {
-            let r = Rotation3::from_axis_angle(&axis, steps * step).into_inner() * lead.pose.r;
-            Pose { r, s: lead.pose.s, t: pivot - lead.pose.s * (r * origin) }
-        };
-        // Turn i's score on a level, or +∞ for turns left out.
-        let mut score_turns = |model: &LinearModel, normals: &[P3], wanted: &dyn Fn(usize) -> bool| -> Vec<f64> {
-            let y_model = model.evaluate(&lead.latent);
-            let view = View { normals, viewpoint: self.viewpoint, occlusion: None };
-            (0..k)
-                .map(|i| {
-                    if !wanted(i) {
-                        return f64::INFINITY;
-                    }
-                    let mut pose = turned(i as f64);
-                    let mut y_world: Vec<P3> = y_model.iter().map(|y| pose.apply(y)).collect();
-                    let w = view.weights(&pose, &y_world, lead.sigma2, &mut weights);
-                    if let Some(shift) = estep.centroid_shift(&y_world, w, lead.sigma2, opts.outlier_weight) {
-                        pose.t += Vector3::from(shift);
-                        y_world.iter_mut().zip(&y_model).for_each(|(w, y)| *w = pose.apply(y));
-                    }
-                    let (nll_pt, violation) = score_posed(
-                        &mut estep,
-                        &view,
-                        &pose,
-                        &y_world,
-                        lead.sigma2,
-                        self.free_space,
-                        opts,
-                        &mut weights,
-                    );
-                    nll_pt + FREE_SPACE_PENALTY * violation
-                })
-                .collect()
-        };
-        let screened = self
-            .screen
-            .filter(|_| opts.yaw_sweep_screen)
-            .map(|(model, normals)| score_turns(model, normals, &|_| true));
-        let scores = match &screened {
-            Some(cheap) => {
-                let floor = cheap.iter().copied().fold(f64::INFINITY, f64::min);
-                score_turns(self.model, self.normals, &|i| i == 0 || cheap[i] <= floor + SWEEP_SCREEN_MARGIN)
-            }
-            None => score_turns(self.model, self.normals, &|_| true),
-        };
-        let best = (0..k).min_by(|&a, &b| scores[a].total_cmp(&scores[b])).unwrap_or(0);
-        let ok = |i: usize| scores[i % k] <= scores[best] + opts.yaw_sweep_margin;
-        let (mut left, mut right) = (0, 0);
-        while left + right + 1 < k && ok(best + k - left - 1) {
-            left += 1;
-        }
-        while left + right + 1 < k && ok(best + right + 1) {
-            right += 1;
-        }
-        let half_width = (left + right) as f64 * step / 2.0;
-        if trace_enabled() {
-            let s: Vec<String> = scores.iter().map(|v| format!("{:.2}", v - scores[best])).collect();
-            eprintln!(
-                "   yaw sweep (step {:.0}°): best {} arc -{left}..+{right}: [{}]",
-                step.to_degrees(),
-                best,
-                s.join(" ")
-            );
-        }
-        // Middle of the arc, in steps from the lead (half steps allowed).
-        let mid = best as f64 + (right as f64 - left as f64) / 2.0;
-        let mid = if mid > k as f64 / 2.0 { mid - k as f64 } else { mid };
-        if mid.abs() < 0.25 {
-            return (None, half_width);
-        }
-        (Some(turned(mid)), half_width)
-    }
-}
-
-/// Turns the sweep's sparse screen scores more than this (nats per observed
-/// point) above its best are not scored on the dense level. The screen's own
-/// noise is 0.1-0.3 nats (its points' spacing, see the sweep's comment), so
-/// a turn within `yaw_sweep_margin` of the dense best stays in. Measured on
-/// the half-hidden-handle views of `the_sweep_screen_keeps_the_turns_the_dense_scores_choose`:
-/// at 0.3 a fit came out 6.5° apart from the unscreened one, at 0.45 none.
-const SWEEP_SCREEN_MARGIN: f64 = 0.7;
-
 /// A fit's negative log-likelihood per observed point and the share of its
 /// camera-facing model the view contradicts, both with `level`'s points at
 /// the fit's pose, latent and σ². `estep` holds the view's points; one
@@ -1492,31 +1285,6 @@ fn score_posed(
     let violation = free_space
         .map_or(0.0, |fs| fs.violation_fraction(y_world, view.normals.iter().map(|n| pose.r * Vector3::from(*n))));
     (nll / estep.data().len().max(1) as f64, violation)
-}
-
-/// The line a yaw sweep turns the lead about: the lead's canonical axis
-/// nearest `up` when it is within 10° of it, else `up`. Turning about the
-/// world's up would swing a fit's small tilt (1-3°) round with the yaw, and
-/// on a 12 cm mug that tilt alone moves the rim by 2-3 mm, about σ: the body,
-/// not the handle, then decided the sweep's scores.
-fn sweep_axis(r: &Matrix3<f64>, up: Vector3<f64>) -> nalgebra::Unit<Vector3<f64>> {
-    let up = nalgebra::Unit::new_normalize(up);
-    let nearest = (0..3)
-        .map(|i| {
-            let a = r.column(i).into_owned();
-            if a.dot(&up) < 0.0 {
-                -a
-            } else {
-                a
-            }
-        })
-        .max_by(|a, b| a.dot(&up).total_cmp(&b.dot(&up)))
-        .expect("three axes");
-    if nearest.dot(&up) > 10f64.to_radians().cos() {
-        nalgebra::Unit::new_normalize(nearest)
-    } else {
-        up
-    }
 }
 
 /// Coarse starts whose rotations are this close after `coarse_merge_after`
@@ -1987,113 +1755,6 @@ impl<'a> EmRun<'a> {
     }
 }
 
-/// Camera directions tried when the view's camera position is not given
-/// (a Fibonacci sphere; those below the table are dropped when `up` is known).
-const VIEWPOINT_DIRECTIONS: usize = 96;
-/// Directions scoring within this of the best are as likely.
-const VIEWPOINT_SCORE_MARGIN: f64 = 0.06;
-/// Widest spread (rad) of the likely directions for an estimate to be used:
-/// a flat tool looks the same from a wide cone above it.
-const VIEWPOINT_MAX_SPREAD: f64 = 30.0 * std::f64::consts::PI / 180.0;
-/// A wider cone is still used when its mean direction lies within this of
-/// `up` (rad): a flat tool seen from somewhere above. What it brings is the
-/// visibility weights: the tool's underside, which no camera above sees, no
-/// longer pulls the model onto the observed top (used for the free-space term
-/// alone, the cone's mean changed nothing: the figures below went back to the
-/// old ones, YCB hammer 5.3 mm). The cost is the rotation's p90 (hammer 1-2°
-/// → 3-5°): the sides a camera 25-45° up saw face across the mean, and some
-/// count as hidden. Measured with `--unknown-viewpoint`, 8 views, seeds 7 /
-/// 11 / 23: the hammer's estimates were all refused (cones 43-60° wide around up); with
-/// them used, test keypoint median / p90 3.96 / 8.4, 4.19 / 8.0, 4.10 / 8.5 →
-/// 3.57 / 6.1, 3.64 / 6.0, 3.70 / 6.9 mm, train median 3.34, 3.36, 3.15 →
-/// 2.82, 2.88, 2.80 mm; the real YCB hammer (`eval ycb`) 5.27 → 3.9 mm
-/// Chamfer, 3 → 5 of 8 confident. Mug and drill unchanged (their cones are
-/// narrow), lying on their side equal or better (mug test median 3.55 → 3.39).
-/// Not everywhere: on the 8 views of the flat-tool test (one hammer) the
-/// keypoint median goes 3.8 → 4.3 mm though 5 of the 8 views gain.
-const VIEWPOINT_ABOVE_WITHIN: f64 = 20.0 * std::f64::consts::PI / 180.0;
-/// Highest best score (occluded share of the view plus contradicted share of
-/// the model) for the view to be one camera's (a whole surface scores about 0.5).
-const VIEWPOINT_MAX_SCORE: f64 = 0.4;
-/// Largest share of the view that the chosen camera sees behind other
-/// observed points by more than 1 cm on a range image one point spacing
-/// fine: single views of the built-in tools 0.03-0.34 (most below 0.25,
-/// part of it the estimate's own error), whole surfaces 0.22-0.54.
-const VIEWPOINT_MAX_OCCLUDED: f64 = 0.25;
-
-/// The camera position a single depth view was most likely seen from, given
-/// a first fit (pose, mean shape). A camera direction is scored by what it
-/// contradicts: the share of the view it would see behind other observed
-/// points (by more than 15 % of the view's size: the range image's cells
-/// are coarse), plus the share of the fitted model facing it that the view
-/// does not show (`FreeSpace::violation_fraction`). The camera is somewhere
-/// among the directions scoring near the best; their mean is taken when they
-/// lie within 30° of it, or when their mean points up (a flat tool looks
-/// alike from a wide cone above it: see [`VIEWPOINT_ABOVE_WITHIN`]). The
-/// distance is not observable; the camera is put where one framing the view
-/// would be (3 view diagonals, at least 0.25 m). None when the directions do
-/// not settle elsewhere or none is plausible: a whole-surface or merged cloud
-/// is seen behind itself from everywhere (checked at the chosen direction on
-/// a range image one point spacing fine, where a single view's own points
-/// rarely hide each other).
-fn estimate_viewpoint(
-    model: &LinearModel,
-    normals: &[P3],
-    pose: &Pose,
-    x: &[P3],
-    up: Option<Vector3<f64>>,
-) -> Option<Vector3<f64>> {
-    if x.is_empty() || normals.len() != model.len() {
-        return None;
-    }
-    let y: Vec<P3> = model.base.iter().map(|p| pose.apply(p)).collect();
-    let n = x.len() as f64;
-    let centroid = x.iter().fold(Vector3::zeros(), |a, p| a + Vector3::from(*p)) / n;
-    let (mut lo, mut hi) = (Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY));
-    for p in x {
-        lo = lo.inf(&Vector3::from(*p));
-        hi = hi.sup(&Vector3::from(*p));
-    }
-    let distance = (3.0 * (hi - lo).norm()).max(0.25);
-    let normals_world: Vec<Vector3<f64>> = normals.iter().map(|n| pose.r * Vector3::from(*n)).collect();
-    let occlusion_tol = (0.15 * (hi - lo).norm()).max(0.01);
-    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
-    let mut scored: Vec<(f64, Vector3<f64>)> = Vec::with_capacity(VIEWPOINT_DIRECTIONS);
-    for k in 0..VIEWPOINT_DIRECTIONS {
-        let z = 1.0 - 2.0 * (k as f64 + 0.5) / VIEWPOINT_DIRECTIONS as f64;
-        let r = (1.0 - z * z).sqrt();
-        let dir = Vector3::new(r * (golden * k as f64).cos(), r * (golden * k as f64).sin(), z);
-        if up.is_some_and(|u| dir.dot(&u) < -0.05) {
-            continue;
-        }
-        let Some(fs) = FreeSpace::new(x, centroid + dir * distance, FREE_SPACE_MARGIN_M) else { continue };
-        // Observed points behind other observed points: the camera could not have seen them.
-        let occluded = x.iter().filter(|p| fs.hidden_behind_seen(p, occlusion_tol)).count() as f64 / n;
-        // Model surface facing this camera that it did not see.
-        let violated = fs.violation_fraction(&y, normals_world.iter().copied());
-        scored.push((occluded + violated, dir));
-    }
-    let best = scored.iter().map(|s| s.0).fold(f64::INFINITY, f64::min);
-    // Every direction about as good as the best: the camera is somewhere among them.
-    let near: Vec<Vector3<f64>> = scored.iter().filter(|s| s.0 <= best + VIEWPOINT_SCORE_MARGIN).map(|s| s.1).collect();
-    let dir = near.iter().sum::<Vector3<f64>>().try_normalize(1e-9)?;
-    let spread = near.iter().map(|d| d.dot(&dir).clamp(-1.0, 1.0).acos()).fold(0.0, f64::max);
-    let vp = centroid + dir * distance;
-    let fine_occluded = FreeSpace::with_cells(x, vp, FREE_SPACE_MARGIN_M, 1.0)
-        .map_or(1.0, |fs| x.iter().filter(|p| fs.hidden_behind_seen(p, 0.01)).count() as f64 / n);
-    if trace_enabled() {
-        eprintln!(
-            "   viewpoint estimate: direction {:.2?}, score {best:.3}, {} directions within {:.0}°, fine occluded {fine_occluded:.3}",
-            dir.as_slice(),
-            near.len(),
-            spread.to_degrees()
-        );
-    }
-    let above = up.is_some_and(|u| dir.dot(&u) >= VIEWPOINT_ABOVE_WITHIN.cos());
-    let settled = spread <= VIEWPOINT_MAX_SPREAD || above;
-    (best <= VIEWPOINT_MAX_SCORE && settled && fine_occluded <= VIEWPOINT_MAX_OCCLUDED).then_some(vp)
-}
-
 /// The most points a registration works from. Every stage uses far fewer
 /// (800 for the polish, 6,000 for the stray test, 4,000 for the free-space
 /// image), but the stray test and the even subsamples pass over every point
@@ -2174,127 +1835,6 @@ pub fn farthest_points(x: &[P3], n: usize) -> Vec<usize> {
         cur = best.1;
     }
     out
-}
-
-/// The points within 2.5× the median distance of the coordinate-wise median.
-fn trimmed_core(x: &[P3]) -> Vec<P3> {
-    if x.len() < 10 {
-        return x.to_vec();
-    }
-    let median = |mut v: Vec<f64>| {
-        let mid = v.len() / 2;
-        *v.select_nth_unstable_by(mid, f64::total_cmp).1
-    };
-    let m = [
-        median(x.iter().map(|p| p[0]).collect()),
-        median(x.iter().map(|p| p[1]).collect()),
-        median(x.iter().map(|p| p[2]).collect()),
-    ];
-    let d: Vec<f64> = x.iter().map(|p| dist2(p, &m).sqrt()).collect();
-    let limit = 2.5 * median(d.clone());
-    let core: Vec<P3> = x.iter().zip(&d).filter(|(_, &di)| di <= limit).map(|(p, _)| *p).collect();
-    if core.len() >= 10 {
-        core
-    } else {
-        x.to_vec()
-    }
-}
-
-/// Principal axes (columns, descending variance, right-handed) and centroid.
-fn principal_axes(x: &[P3]) -> (Matrix3<f64>, Vector3<f64>) {
-    let (axes, _, mu) = principal_frame(x);
-    (axes, mu)
-}
-
-/// Principal axes (columns, a proper rotation), their variances (descending) and the centroid.
-fn principal_frame(x: &[P3]) -> (Matrix3<f64>, [f64; 3], Vector3<f64>) {
-    let n = x.len().max(1) as f64;
-    let mu = x.iter().fold(Vector3::zeros(), |a, p| a + Vector3::from(*p)) / n;
-    let mut cov = Matrix3::zeros();
-    for p in x {
-        let d = Vector3::from(*p) - mu;
-        cov += d * d.transpose() / n;
-    }
-    let eig = SymmetricEigen::new(cov);
-    let mut order = [0usize, 1, 2];
-    order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
-    let col = |k: usize| -> Vector3<f64> { eig.eigenvectors.column(order[k]).into_owned() };
-    let mut axes = Matrix3::from_columns(&[col(0), col(1), col(2)]);
-    if axes.determinant() < 0.0 {
-        let c2 = -axes.column(2).into_owned();
-        axes.set_column(2, &c2);
-    }
-    (axes, order.map(|k| eig.eigenvalues[k]), mu)
-}
-
-/// The 24 proper rotations mapping the coordinate axes onto themselves.
-fn cube_rotations() -> Vec<Matrix3<f64>> {
-    let mut out = Vec::with_capacity(24);
-    let axes: [Vector3<f64>; 6] =
-        [Vector3::x(), Vector3::y(), Vector3::z(), -Vector3::x(), -Vector3::y(), -Vector3::z()];
-    for a in &axes {
-        for b in &axes {
-            if a.dot(b).abs() > 0.5 {
-                continue;
-            }
-            let c = a.cross(b);
-            out.push(Matrix3::from_columns(&[*a, *b, c]));
-        }
-    }
-    out
-}
-
-/// How much of the view faces sideways, and from how many sides: the share
-/// of `x`'s points whose normal (the least principal axis of the point's 12
-/// nearest neighbours in `x`) lies within about 20° of horizontal, and the
-/// axial mean resultant length of those normals' azimuths (0: spread all
-/// round, as over a standing body of revolution's visible half; 1: one
-/// direction, as over a flat face). Written here rather than taken from a
-/// point-cloud library: it is one k-d tree query and a 3×3 eigenproblem a point.
-fn side_facing(x: &[P3], up: &Vector3<f64>) -> (f64, f64) {
-    // A normal from 24 neighbours, not 12: under 2 mm noise and 10 %
-    // outliers the 12-point normals scattered and only 207 of 312 standing
-    // mug views passed `UPRIGHT_SIDE_FACING` (seed 7; the rest kept every
-    // start); with 24 all 312 of each of seeds 7 / 11 / 23 pass (share
-    // 0.76-1.00, ±30 % size too), views on their side stay at 0.02-0.61
-    // and clean standing ones at 0.89-1.00. A cylinder's normals stay
-    // horizontal however wide the patch, so the wider patch costs no
-    // separation; it costs about 0.03 ms (`bench_register` coarse stage).
-    const NEIGHBOURS: usize = 24;
-    const QUERY_STRIDE: usize = 4;
-    if x.len() < 2 * NEIGHBOURS {
-        return (0.0, 1.0);
-    }
-    let tree = crate::geometry::PointTree::new_from_slice(x);
-    let k = std::num::NonZeroUsize::new(NEIGHBOURS).expect("24 > 0");
-    // Any two horizontal axes for the azimuth.
-    let e1 = up.cross(&if up.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() }).normalize();
-    let e2 = up.cross(&e1);
-    let (mut n_side, mut c2, mut s2) = (0usize, 0.0, 0.0);
-    // Every 4th point asks (the fit's subsample is spread evenly or drawn at
-    // random, so these still cover the view): all 400 took 0.7 ms, a third
-    // of the coarse stage.
-    let queries = x.len().div_ceil(QUERY_STRIDE);
-    for p in x.iter().step_by(QUERY_STRIDE) {
-        let nb = tree.nearest_n::<kiddo::SquaredEuclidean>(p, k);
-        let mu = nb.iter().map(|n| Vector3::from(x[n.item as usize])).sum::<Vector3<f64>>() / NEIGHBOURS as f64;
-        let cov = nb.iter().fold(Matrix3::zeros(), |c, n| {
-            let d = Vector3::from(x[n.item as usize]) - mu;
-            c + d * d.transpose()
-        });
-        let eig = cov.symmetric_eigen();
-        let normal = eig.eigenvectors.column(eig.eigenvalues.imin()).into_owned();
-        if normal.dot(up).abs() < SIDE_FACING_MAX_UP {
-            n_side += 1;
-            // Doubled angle: a normal's sign is not known.
-            let (a, b) = (normal.dot(&e1), normal.dot(&e2));
-            let r2 = a * a + b * b;
-            c2 += (a * a - b * b) / r2;
-            s2 += 2.0 * a * b / r2;
-        }
-    }
-    let spread = if n_side > 0 { (c2 * c2 + s2 * s2).sqrt() / n_side as f64 } else { 1.0 };
-    (n_side as f64 / queries as f64, spread)
 }
 
 #[cfg(test)]
