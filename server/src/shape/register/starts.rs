@@ -19,14 +19,15 @@ use nalgebra::{Matrix3, Rotation3, SymmetricEigen, Vector3};
 /// Measured (mug, `eval transfer --views 12`, seeds 7 / 11 / 23, test and
 /// train views, 936 registrations each): upright share 0.81-1.00 and one-way
 /// resultant 0.09-0.50, all 936 skipped; on its side (`--on-side`) share
-/// 0.04-0.62, none skipped. With 10 % outliers and 2 mm noise 207 of 312
-/// upright views skipped with 12-neighbour normals, all 312 with 24 (see
+/// 0.04-0.62, none skipped. Skipping the lying starts: upright test
+/// keypoints identical, train p90 23.55 → 18.85 mm (a lying start had won
+/// a few wrong poses), on-side identical; mug fit p50 8.6-8.9 → 7.8-7.9 ms
+/// (`bench_register`, coarse stage 2.4 → 1.4 ms). For the principal-axis
+/// starts see `Starts`. With 10 % outliers and 2 mm noise 207 of 312 upright
+/// views passed with 12-neighbour normals, all 312 with 24 (see
 /// `side_facing`; there train keypoint median / p90 2.20 / 20.80 → 2.18 /
-/// 20.59 mm, means of seeds 7 / 11 / 23, test identical). Results: upright test keypoints identical,
-/// train p90 23.55 → 18.85 mm (a lying start had won a few wrong poses),
-/// on-side identical; mug fit p50 8.6-8.9 → 7.8-7.9 ms (`bench_register`,
-/// coarse stage 2.4 → 1.4 ms). A tilted, noisy or top-down view falls
-/// outside and keeps every start.
+/// 20.59 mm, means of seeds 7 / 11 / 23, test identical). A tilted or
+/// top-down view falls outside and keeps every start.
 pub(super) const UPRIGHT_SIDE_FACING: f64 = 0.75;
 /// ... and at most this axial resultant of their azimuths: a flat face
 /// turned sideways (a mug on its side seen against its base) is not a standing tool.
