@@ -916,3 +916,40 @@ fn a_noisy_standing_mug_is_still_told_standing() {
     }
     assert!(kept_every_start.is_empty(), "views not told standing (tool, view, starts): {kept_every_start:?}");
 }
+
+#[test]
+fn a_mug_on_its_side_fitted_end_over_end_is_called_ambiguous() {
+    // Seen across its body, neither its inside nor its base in view, a mug
+    // on its side fits almost as well either end first, and the race now and
+    // then picks the wrong end (rim and base swapped, the handle kept). Such
+    // a pose must not be reported as certain: the end-over-end turn of the
+    // race's winner is raced too (`RegisterOptions::flip_check`). Measured
+    // on these 24 views: 9 end over end, 7 of them unflagged without it.
+    let reg = mug_registrar();
+    let side = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_2);
+    let family = tools::family(Category::Mug).unwrap();
+    let (mut end_over_end, mut unflagged_without) = (0, 0);
+    for name in ["mug_train_01", "mug_train_04", "mug_train_05"] {
+        let inst = family.iter().find(|i| i.name == name).unwrap();
+        for (k, yaw) in [0.3f64, 1.1, 1.9, 2.7, 3.5, 4.3, 5.1, 5.9].iter().enumerate() {
+            let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), *yaw) * side;
+            let zmin = inst.mesh.vertices.iter().map(|p| (rot * p).z).fold(f64::INFINITY, f64::min);
+            let pose = Isometry3::from_parts(Translation3::new(0.02, 0.04, -zmin), rot);
+            let (cloud, cam_pose) = capture(&inst.mesh, &pose, pose * Point3::origin(), k, k as u64);
+            let opts = RegisterOptions { viewpoint: Some(cam_pose.translation.vector.into()), ..Default::default() };
+            let r = reg.register(&cloud, &opts).unwrap();
+            let rot_err = (r.rotation_cloud_from_canonical * rot.inverse()).angle().to_degrees();
+            if rot_err > 90.0 {
+                end_over_end += 1;
+                assert!(r.fit.ambiguous_pose, "{name} view {k}: {rot_err:.0}° off, not called ambiguous");
+                let without = reg.register(&cloud, &RegisterOptions { flip_check: false, ..opts }).unwrap();
+                unflagged_without += usize::from(!without.fit.ambiguous_pose);
+            }
+        }
+    }
+    // The views still show what the check is for.
+    assert!(
+        end_over_end >= 5 && unflagged_without >= 3,
+        "{end_over_end} end over end, {unflagged_without} unflagged without the check"
+    );
+}
