@@ -12,7 +12,8 @@ pub use sample::{sample_points, sample_points_even, SurfacePoint, SurfaceSampler
 
 /// A static k-d tree over 3-D points, answering nearest-point queries with
 /// the point's index (kiddo's immutable tree: built once from a slice, the
-/// fastest of its trees to query; 32 points a leaf bucket, its default).
+/// fastest of its trees to query; 32 points a leaf bucket, as kiddo's own
+/// examples use: the type has no default).
 pub type PointTree = kiddo::immutable::float::kdtree::ImmutableKdTree<f64, u32, 3, 32>;
 
 #[cfg(test)]
