@@ -39,6 +39,15 @@ fn on_table(yaw: f64) -> Isometry3<f64> {
     Isometry3::from_parts(Translation3::new(0.05, -0.03, 0.0), UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw))
 }
 
+/// `mesh` lying on its side (turned 90° about its x axis) at `yaw`, its
+/// lowest point on the table (z = 0).
+fn on_side(mesh: &crate::geometry::TriMesh, yaw: f64) -> Isometry3<f64> {
+    let side = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_2);
+    let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw) * side;
+    let zmin = mesh.vertices.iter().map(|p| (rot * p).z).fold(f64::INFINITY, f64::min);
+    Isometry3::from_parts(Translation3::new(0.02, 0.04, -zmin), rot)
+}
+
 /// One noisy view of `mesh` placed at `yaw` on a table.
 fn view_of(mesh: &crate::geometry::TriMesh, yaw: f64, view: usize) -> (Vec<Point3<f64>>, Isometry3<f64>) {
     let pose = on_table(yaw);
@@ -420,12 +429,10 @@ fn a_mug_on_its_side_registers_the_right_way_round() {
     // error p90 115 mm without those starts, its opening reversed; 9.2 mm with).
     let reg = mug_registrar();
     let test = tools::family(Category::Mug).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap();
-    let side = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_2);
     let mut errs = Vec::new();
     for (k, yaw) in [0.3f64, 1.9, 3.5, 5.1].iter().enumerate() {
-        let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), *yaw) * side;
-        let zmin = test.mesh.vertices.iter().map(|p| (rot * p).z).fold(f64::INFINITY, f64::min);
-        let pose = Isometry3::from_parts(Translation3::new(0.02, 0.04, -zmin), rot);
+        let pose = on_side(&test.mesh, *yaw);
+        let rot = pose.rotation;
         let (cloud, cam_pose) = capture(&test.mesh, &pose, pose * Point3::origin(), k * 2, k as u64);
         let opts = RegisterOptions { viewpoint: Some(cam_pose.translation.vector.into()), ..Default::default() };
         let r = reg.register(&cloud, &opts).unwrap();
@@ -926,15 +933,13 @@ fn a_mug_on_its_side_fitted_end_over_end_is_called_ambiguous() {
     // race's winner is raced too (`RegisterOptions::flip_check`). Measured
     // on these 24 views: 9 end over end, 7 of them unflagged without it.
     let reg = mug_registrar();
-    let side = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_2);
     let family = tools::family(Category::Mug).unwrap();
     let (mut end_over_end, mut unflagged_without) = (0, 0);
     for name in ["mug_train_01", "mug_train_04", "mug_train_05"] {
         let inst = family.iter().find(|i| i.name == name).unwrap();
         for (k, yaw) in [0.3f64, 1.1, 1.9, 2.7, 3.5, 4.3, 5.1, 5.9].iter().enumerate() {
-            let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), *yaw) * side;
-            let zmin = inst.mesh.vertices.iter().map(|p| (rot * p).z).fold(f64::INFINITY, f64::min);
-            let pose = Isometry3::from_parts(Translation3::new(0.02, 0.04, -zmin), rot);
+            let pose = on_side(&inst.mesh, *yaw);
+            let rot = pose.rotation;
             let (cloud, cam_pose) = capture(&inst.mesh, &pose, pose * Point3::origin(), k, k as u64);
             let opts = RegisterOptions { viewpoint: Some(cam_pose.translation.vector.into()), ..Default::default() };
             let r = reg.register(&cloud, &opts).unwrap();
