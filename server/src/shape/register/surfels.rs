@@ -8,7 +8,8 @@
 //! takes Gauss-Newton steps on it (a generalised EM: each step lowers the
 //! objective), and the latent its exact weighted least squares.
 
-use super::{dot_slices, Fit, LatentLevel, RegisterOptions, Support, View, LOOSE_SCALE_PRIOR_STD};
+use super::em::{dot_slices, Fit, Support, View};
+use super::{LatentLevel, RegisterOptions, LOOSE_SCALE_PRIOR_STD};
 use crate::shape::cpd::Normalization;
 use crate::shape::estep::{dot, Posteriors, Surfels, P3};
 use crate::simd::clear_upper_state;
