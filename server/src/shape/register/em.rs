@@ -310,14 +310,8 @@ impl LatentStep {
             }
             a[(j, j)] += reg / var[j];
         }
-        // The support's rank-one term K·g·gᵀ, K·g·e (`Support::latent_row`).
         if let Some((g, e, k)) = support {
-            for j in 0..q {
-                b[(j, 0)] += k * g[j] * e;
-                for l in 0..q {
-                    a[(j, l)] += k * g[j] * g[l];
-                }
-            }
+            add_support_term(&mut a, &mut b, g, e, k);
         }
         let llt = a.llt(Side::Lower);
         let sol = llt.ok().map(|l| l.solve(&b));
@@ -335,6 +329,17 @@ impl LatentStep {
 /// everywhere: where the CPU has them, the same loop is compiled for AVX2 or
 /// AVX-512 too. Every lane adds its products in the same order with no fused
 /// multiply-add, so the sum is the same bit for bit on every level.
+/// Adds the support's rank-one term (`Support::latent_row`) to the latent's
+/// normal equations A ℓ = b: K·g·gᵀ to A and K·g·e to b.
+pub(super) fn add_support_term(a: &mut Mat<f64>, b: &mut Mat<f64>, g: &[f64], e: f64, k: f64) {
+    for j in 0..g.len() {
+        b[(j, 0)] += k * g[j] * e;
+        for l in 0..g.len() {
+            a[(j, l)] += k * g[j] * g[l];
+        }
+    }
+}
+
 pub(super) fn dot_slices(a: &[f64], b: &[f64]) -> f64 {
     #[cfg(target_arch = "x86_64")]
     {

@@ -8,7 +8,7 @@
 //! takes Gauss-Newton steps on it (a generalised EM: each step lowers the
 //! objective), and the latent its exact weighted least squares.
 
-use super::em::{dot_slices, Fit, Support, View};
+use super::em::{add_support_term, dot_slices, Fit, Support, View};
 use super::{LatentLevel, RegisterOptions, LOOSE_SCALE_PRIOR_STD};
 use crate::shape::cpd::Normalization;
 use crate::shape::estep::{dot, Posteriors, Surfels, P3};
@@ -266,12 +266,7 @@ fn latent_step(
     }
     // The support's rank-one term (`Support::latent_row`), at K·s² like the data's.
     if let Some((gv, e, k)) = support {
-        for j in 0..q {
-            bv[(j, 0)] += k * s2 * gv[j] * e;
-            for l in 0..q {
-                am[(j, l)] += k * s2 * gv[j] * gv[l];
-            }
-        }
+        add_support_term(&mut am, &mut bv, gv, e, k * s2);
     }
     let sol = am.llt(Side::Lower).ok().map(|l| l.solve(&bv));
     clear_upper_state();
