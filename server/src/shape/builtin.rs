@@ -1,7 +1,8 @@
 //! Shape spaces of the built-in procedural families, built on first use and
 //! cached as artefacts (the build is deterministic and takes about a second).
 
-use super::space::{BuildOptions, BuildReport, NamedPoint, ShapeSpace, SpaceError, TrainingShape};
+use super::space::{source_fingerprint, BuildOptions, BuildReport, NamedPoint, ShapeSpace, SpaceError, TrainingShape};
+use crate::geometry::TriMesh;
 use crate::tools::{self, Category, Split};
 use std::path::{Path, PathBuf};
 
@@ -10,27 +11,54 @@ pub fn artefact_path(cache_dir: &Path, category: Category) -> PathBuf {
     cache_dir.join(format!("{}.gspace", category.name()))
 }
 
+/// What the space of a built-in category is built from: the canonical
+/// instance, its keypoints, and the training instances.
+struct Inputs {
+    canonical: TriMesh,
+    keypoints: Vec<NamedPoint>,
+    training: Vec<TrainingShape>,
+}
+
+impl Inputs {
+    fn of(category: Category) -> Result<Self, SpaceError> {
+        let family = tools::family(category)
+            .map_err(|e| SpaceError::Artefact { path: category.name().into(), reason: e.to_string() })?;
+        let canonical = family.iter().find(|i| i.split == Split::Canonical).ok_or_else(|| SpaceError::Artefact {
+            path: category.name().into(),
+            reason: "family has no canonical instance".into(),
+        })?;
+        let keypoints_of = |i: &tools::Instance| -> Vec<NamedPoint> {
+            i.keypoints.iter().map(|k| NamedPoint { name: k.name.clone(), position: k.position }).collect()
+        };
+        let training = family
+            .iter()
+            .filter(|i| i.split == Split::Train)
+            .map(|i| TrainingShape { name: i.name.clone(), mesh: i.mesh.clone(), keypoints: keypoints_of(i) })
+            .collect();
+        Ok(Self { canonical: canonical.mesh.clone(), keypoints: keypoints_of(canonical), training })
+    }
+
+    fn fingerprint(&self) -> u64 {
+        source_fingerprint(&self.canonical, &self.keypoints, &self.training)
+    }
+
+    fn build(
+        self,
+        category: Category,
+        opts: &BuildOptions,
+        progress: impl Fn(usize, usize) + Sync,
+    ) -> Result<(ShapeSpace, BuildReport), SpaceError> {
+        ShapeSpace::build(category.name(), &self.canonical, self.keypoints, &self.training, opts, progress)
+    }
+}
+
 /// Builds the space of a built-in category from its canonical and training instances.
 pub fn build(
     category: Category,
     opts: &BuildOptions,
     progress: impl Fn(usize, usize) + Sync,
 ) -> Result<(ShapeSpace, BuildReport), SpaceError> {
-    let family = tools::family(category)
-        .map_err(|e| SpaceError::Artefact { path: category.name().into(), reason: e.to_string() })?;
-    let canonical = family.iter().find(|i| i.split == Split::Canonical).ok_or_else(|| SpaceError::Artefact {
-        path: category.name().into(),
-        reason: "family has no canonical instance".into(),
-    })?;
-    let keypoints_of = |i: &tools::Instance| -> Vec<NamedPoint> {
-        i.keypoints.iter().map(|k| NamedPoint { name: k.name.clone(), position: k.position }).collect()
-    };
-    let training: Vec<TrainingShape> = family
-        .iter()
-        .filter(|i| i.split == Split::Train)
-        .map(|i| TrainingShape { name: i.name.clone(), mesh: i.mesh.clone(), keypoints: keypoints_of(i) })
-        .collect();
-    ShapeSpace::build(category.name(), &canonical.mesh, keypoints_of(canonical), &training, opts, progress)
+    Inputs::of(category)?.build(category, opts, progress)
 }
 
 /// Loads the cached artefact, or builds and caches it when it is missing,
@@ -41,16 +69,51 @@ pub fn load_or_build(
     progress: impl Fn(usize, usize) + Sync,
 ) -> Result<ShapeSpace, SpaceError> {
     let path = artefact_path(cache_dir, category);
+    let inputs = Inputs::of(category)?;
     match ShapeSpace::load(&path) {
-        Ok(s) if s.build == BuildOptions::default() => return Ok(s),
+        Ok(s) if s.build == BuildOptions::default() && s.source == inputs.fingerprint() => return Ok(s),
+        Ok(s) if s.build == BuildOptions::default() => {
+            tracing::info!(
+                "rebuilding {}: built from another {} family than this graspd's",
+                path.display(),
+                category.name()
+            )
+        }
         Ok(_) => tracing::info!("rebuilding {}: built with other options than this graspd's", path.display()),
         Err(e) if path.exists() => tracing::warn!("rebuilding: {e}"),
         Err(_) => tracing::info!("building the {} shape space (no artefact at {})", category.name(), path.display()),
     }
-    let (space, report) = build(category, &BuildOptions::default(), progress)?;
+    let (space, report) = inputs.build(category, &BuildOptions::default(), progress)?;
     tracing::info!("built {} shape space: {} modes in {:.2} s", category.name(), report.modes, report.build_s);
     if let Err(e) = space.save(&path) {
         tracing::warn!("could not cache the shape space: {e}");
     }
     Ok(space)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A cached space built from another family (here: its fingerprint
+    /// altered, as a family edit between two graspd versions would) is
+    /// rebuilt, not served; an up-to-date one is served as it is.
+    #[test]
+    fn a_cache_from_another_family_is_rebuilt() {
+        let dir = tempfile::tempdir().unwrap();
+        let category = Category::Hammer;
+        let path = artefact_path(dir.path(), category);
+        let fresh = load_or_build(category, dir.path(), |_, _| {}).unwrap();
+        assert_eq!(fresh.source, Inputs::of(category).unwrap().fingerprint());
+
+        let mut stale = ShapeSpace::load(&path).unwrap();
+        stale.source ^= 1;
+        stale.modes.truncate(1);
+        stale.variances.truncate(1);
+        stale.save(&path).unwrap();
+        let served = load_or_build(category, dir.path(), |_, _| {}).unwrap();
+        assert_eq!(served.source, fresh.source);
+        assert_eq!(served.modes, fresh.modes, "the stale modes were served");
+        assert_eq!(ShapeSpace::load(&path).unwrap().source, fresh.source, "the cache was not rewritten");
+    }
 }

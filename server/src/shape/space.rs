@@ -22,8 +22,9 @@ use std::time::Instant;
 /// meaning, or of the build's numerics, so that cached builds are redone
 /// (4: the kernel factor by pivoted Cholesky, the CPD's E-step in single
 /// precision and its M-step's Q in f32: values move in the sixth digit;
-/// 5: the M-step's products fused on AVX2 and AVX-512, last-bit changes).
-pub const FORMAT_VERSION: u32 = 5;
+/// 5: the M-step's products fused on AVX2 and AVX-512, last-bit changes;
+/// 6: the fingerprint of the build's inputs, `source`).
+pub const FORMAT_VERSION: u32 = 6;
 const MAGIC: &[u8; 8] = b"GRSPSPC\0";
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -64,6 +65,9 @@ pub struct ShapeSpace {
     pub landmarks: usize,
     /// Latent of each training instance (projection of its W_i).
     pub train_latents: Vec<Vec<f64>>,
+    /// Fingerprint of what it was built from ([`source_fingerprint`]): a
+    /// cached space whose family has changed since is rebuilt, not served.
+    pub source: u64,
 }
 
 /// A fit whose smallest Jacobian determinant over the canonical surface is
@@ -332,6 +336,7 @@ impl ShapeSpace {
             train_latents,
             build: *opts,
             landmarks: landmark_kp.len(),
+            source: source_fingerprint(canonical, &canonical_keypoints, training),
         };
         let report = BuildReport {
             category: category.to_string(),
@@ -755,6 +760,32 @@ fn pca(w_rows: &[Vec<f64>], v_rows: &[Vec<f64>], explained: f64, max_modes: usiz
 }
 
 /// FNV-1a, 64-bit: enough to catch corruption (not an authenticity check).
+/// FNV-1a over the canonical and training meshes (vertices, triangles) and
+/// keypoints, in order: equal inputs, equal fingerprint, on every machine.
+pub fn source_fingerprint(canonical: &TriMesh, canonical_keypoints: &[NamedPoint], training: &[TrainingShape]) -> u64 {
+    let mut bytes = Vec::new();
+    let mut push_shape = |name: &str, mesh: &TriMesh, keypoints: &[NamedPoint]| {
+        bytes.extend_from_slice(name.as_bytes());
+        bytes.push(0);
+        for v in &mesh.vertices {
+            v.coords.iter().for_each(|x| bytes.extend_from_slice(&x.to_le_bytes()));
+        }
+        for t in &mesh.triangles {
+            t.iter().for_each(|i| bytes.extend_from_slice(&i.to_le_bytes()));
+        }
+        for k in keypoints {
+            bytes.extend_from_slice(k.name.as_bytes());
+            bytes.push(0);
+            k.position.iter().for_each(|x| bytes.extend_from_slice(&x.to_le_bytes()));
+        }
+    };
+    push_shape("", canonical, canonical_keypoints);
+    for t in training {
+        push_shape(&t.name, &t.mesh, &t.keypoints);
+    }
+    fnv1a(&bytes)
+}
+
 fn fnv1a(bytes: &[u8]) -> u64 {
     bytes.iter().fold(0xcbf29ce484222325u64, |h, b| (h ^ *b as u64).wrapping_mul(0x100000001b3))
 }
