@@ -21,7 +21,7 @@ use rayon::prelude::*;
 mod avx512;
 mod surfel;
 
-pub use surfel::{ResidualSums, Surfels};
+pub use surfel::{model_order, ResidualSums, Surfels};
 
 use crate::simd::Simd;
 
@@ -181,6 +181,13 @@ impl EStep {
         let nll = post.neg_log_likelihood;
         self.scratch = post;
         nll
+    }
+
+    /// Orders the moving points of the blocked E-steps to come by `order`
+    /// ([`model_order`] of a model of `m` points at rest) instead of
+    /// ordering them at the first; ignored when it does not order `m` points.
+    pub fn use_model_order(&mut self, order: &[usize], m: usize) {
+        self.surfel_buf.use_model_order(order, m);
     }
 
     /// The shift that moves the posterior-weighted centroid of `y` onto the

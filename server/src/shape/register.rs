@@ -476,7 +476,7 @@ impl Models {
             if deformable {
                 space.linear_model(z)
             } else {
-                LinearModel { base: z.iter().map(|p| space.norm.forward(p)).collect(), basis: Vec::new() }
+                LinearModel::new(z.iter().map(|p| space.norm.forward(p)).collect(), Vec::new())
             }
         };
         let surface = model(&space.surface);
@@ -715,6 +715,7 @@ impl Registrar {
             }
         }
         let mut scorer = new_estep(&race_x);
+        scorer.use_model_order(models.polish.model.block_order(), models.polish.model.len());
         // One raced pose: EM on the mean shape from `pose`, then its score.
         let race = |scorer: &mut EStep, pose: Pose, sigma2: f64| -> (Fit, f64, f64, f64) {
             // Start at the coarse fit's σ² (loosened for the finer model): re-annealing

@@ -384,7 +384,7 @@ impl ShapeSpace {
                 (0..zn.len()).map(|i| [b[(i, 0)], b[(i, 1)], b[(i, 2)]]).collect()
             })
             .collect();
-        LinearModel { base, basis }
+        LinearModel::new(base, basis)
     }
 
     /// Canonical points moved by the deformation of `latent`, canonical frame, metres.
@@ -432,7 +432,7 @@ impl ShapeSpace {
         const NEAR: f64 = 0.003;
         const FAR: f64 = 0.010;
         let direct = self.linear_model(z);
-        let empty = LinearModel { base: Vec::new(), basis: Vec::new() };
+        let empty = LinearModel::new(Vec::new(), Vec::new());
         let mut model = AnchoredModel {
             norm: self.norm,
             canonical: z.to_vec(),
@@ -640,9 +640,19 @@ pub struct LinearModel {
     pub base: Vec<P3>,
     /// `basis[j][i]`: displacement of point i per unit of ℓ_j.
     pub basis: Vec<Vec<P3>>,
+    /// The blocked E-step's order of the points, made on `base` at first use
+    /// ([`crate::shape::estep::model_order`]).
+    block_order: std::sync::OnceLock<Vec<usize>>,
 }
 
 impl LinearModel {
+    pub fn new(base: Vec<P3>, basis: Vec<Vec<P3>>) -> Self {
+        Self { base, basis, block_order: Default::default() }
+    }
+    /// The points in blocks of nearby ones, for `EStep::use_model_order`.
+    pub fn block_order(&self) -> &[usize] {
+        self.block_order.get_or_init(|| crate::shape::estep::model_order(&self.base))
+    }
     pub fn len(&self) -> usize {
         self.base.len()
     }
@@ -665,10 +675,10 @@ impl LinearModel {
     }
     /// The sub-model of the given point indices.
     pub fn select(&self, idx: &[usize]) -> LinearModel {
-        LinearModel {
-            base: idx.iter().map(|&i| self.base[i]).collect(),
-            basis: self.basis.iter().map(|b| idx.iter().map(|&i| b[i]).collect()).collect(),
-        }
+        LinearModel::new(
+            idx.iter().map(|&i| self.base[i]).collect(),
+            self.basis.iter().map(|b| idx.iter().map(|&i| b[i]).collect()).collect(),
+        )
     }
 }
 

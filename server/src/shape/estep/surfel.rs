@@ -128,8 +128,7 @@ impl SurfelBuffers {
         }
         let m = y.len();
         if self.order.iter().filter(|&&i| i != usize::MAX).count() != m {
-            self.order = spatial_order(y, BLOCK);
-            self.order.resize(m.div_ceil(BLOCK) * BLOCK, usize::MAX);
+            self.order = model_order(y);
         }
         let nb = self.order.len() / BLOCK;
         self.blocks.resize(nb, Block::default());
@@ -158,6 +157,15 @@ impl SurfelBuffers {
         self.live.resize(nb.next_multiple_of(BLOCK) + BLOCK, 0);
     }
 
+    /// Takes `order` (from [`model_order`]) for the moving points of the
+    /// calls to come, when it orders `m` of them.
+    pub(super) fn use_model_order(&mut self, order: &[usize], m: usize) {
+        if order.len() == m.div_ceil(BLOCK) * BLOCK && order.iter().filter(|&&i| i != usize::MAX).count() == m {
+            self.order.clear();
+            self.order.extend_from_slice(order);
+        }
+    }
+
     fn store(&self, out: &mut Posteriors) {
         for (slots, a) in self.order.chunks_exact(BLOCK).zip(&self.acc) {
             for (l, &i) in slots.iter().enumerate() {
@@ -168,6 +176,18 @@ impl SurfelBuffers {
             }
         }
     }
+}
+
+/// The order the blocked kernels put moving points in: blocks of `BLOCK`
+/// nearby points (padded with `usize::MAX`). A fit's model keeps its
+/// neighbourhoods as it moves (a similarity, and the latent's smooth
+/// deformation), so an order made once on a model level's rest shape
+/// serves all its fits (`EStep::use_model_order`): ordering the moving
+/// points at each fit's first E-step took about 4 % of a mug's registration.
+pub fn model_order(points: &[P3]) -> Vec<usize> {
+    let mut order = spatial_order(points, BLOCK);
+    order.resize(points.len().div_ceil(BLOCK) * BLOCK, usize::MAX);
+    order
 }
 
 /// The centroid of some points and their largest distance from it.

@@ -501,8 +501,10 @@ struct EmRun<'a> {
 impl<'a> EmRun<'a> {
     pub(super) fn new(inputs: FitInputs<'a>) -> Self {
         let m = inputs.model.len();
+        let mut estep = new_estep(inputs.x);
+        estep.use_model_order(inputs.model.block_order(), m);
         Self {
-            estep: new_estep(inputs.x),
+            estep,
             post: Posteriors::default(),
             y_model: Vec::with_capacity(m),
             y_world: Vec::with_capacity(m),

@@ -56,6 +56,7 @@ pub(super) fn em_surfels(
     let (model, normals, step) = (&level.model, &level.normals, &level.step);
     let m = model.len();
     let mut estep = super::new_estep(x);
+    estep.use_model_order(model.block_order(), m);
     estep.cutoff_sigmas = CUTOFF_SIGMAS;
     let mut post = Posteriors::default();
     let mut pose = start.pose;

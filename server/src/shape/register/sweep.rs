@@ -54,6 +54,7 @@ impl YawSweep<'_> {
         };
         // Turn i's score on a level, or +∞ for turns left out.
         let mut score_turns = |model: &LinearModel, normals: &[P3], wanted: &dyn Fn(usize) -> bool| -> Vec<f64> {
+            estep.use_model_order(model.block_order(), model.len());
             let y_model = model.evaluate(&lead.latent);
             let view = View { normals, viewpoint: self.viewpoint, occlusion: None };
             (0..k)
