@@ -940,7 +940,7 @@ impl Registrar {
         // surface. Measured (`confidence_scan`, the test tools' own category,
         // 8 views each, 2 mm depth noise and 10 % outliers): reported inlier
         // fraction 0.58-0.69 against 0.70-0.87 of the whole cloud within the
-        // same radius, and 6 of 72 views confident. Drawn last, so that the
+        // same radius, and 10 of 72 views confident. Drawn last, so that the
         // fit's own draws are as before.
         let quality_x = subsample(&all, QUALITY_POINTS, &mut rng);
         let mut quality = self.quality(models, &fit, &quality_x, &all, working.len() - all.len(), working.len());

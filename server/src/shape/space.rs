@@ -769,35 +769,38 @@ fn pca(w_rows: &[Vec<f64>], v_rows: &[Vec<f64>], explained: f64, max_modes: usiz
     Ok(Pca { mean_w, modes_w, variances, explained: cumulative, latents })
 }
 
-/// FNV-1a, 64-bit: enough to catch corruption (not an authenticity check).
 /// FNV-1a over the canonical and training meshes (vertices, triangles) and
 /// keypoints, in order: equal inputs, equal fingerprint, on every machine.
+/// Hashed as it goes: the meshes are about a megabyte.
 pub fn source_fingerprint(canonical: &TriMesh, canonical_keypoints: &[NamedPoint], training: &[TrainingShape]) -> u64 {
-    let mut bytes = Vec::new();
-    let mut push_shape = |name: &str, mesh: &TriMesh, keypoints: &[NamedPoint]| {
-        bytes.extend_from_slice(name.as_bytes());
-        bytes.push(0);
+    let shape = |h: u64, name: &str, mesh: &TriMesh, keypoints: &[NamedPoint]| {
+        let mut h = fnv1a_extend(fnv1a_extend(h, name.as_bytes()), &[0]);
         for v in &mesh.vertices {
-            v.coords.iter().for_each(|x| bytes.extend_from_slice(&x.to_le_bytes()));
+            h = v.coords.iter().fold(h, |h, x| fnv1a_extend(h, &x.to_le_bytes()));
         }
         for t in &mesh.triangles {
-            t.iter().for_each(|i| bytes.extend_from_slice(&i.to_le_bytes()));
+            h = t.iter().fold(h, |h, i| fnv1a_extend(h, &i.to_le_bytes()));
         }
         for k in keypoints {
-            bytes.extend_from_slice(k.name.as_bytes());
-            bytes.push(0);
-            k.position.iter().for_each(|x| bytes.extend_from_slice(&x.to_le_bytes()));
+            h = fnv1a_extend(fnv1a_extend(h, k.name.as_bytes()), &[0]);
+            h = k.position.iter().fold(h, |h, x| fnv1a_extend(h, &x.to_le_bytes()));
         }
+        h
     };
-    push_shape("", canonical, canonical_keypoints);
-    for t in training {
-        push_shape(&t.name, &t.mesh, &t.keypoints);
-    }
-    fnv1a(&bytes)
+    let h = shape(FNV1A_OFFSET, "", canonical, canonical_keypoints);
+    training.iter().fold(h, |h, t| shape(h, &t.name, &t.mesh, &t.keypoints))
 }
 
+const FNV1A_OFFSET: u64 = 0xcbf29ce484222325;
+
+/// FNV-1a, 64-bit: enough to catch corruption (not an authenticity check).
 fn fnv1a(bytes: &[u8]) -> u64 {
-    bytes.iter().fold(0xcbf29ce484222325u64, |h, b| (h ^ *b as u64).wrapping_mul(0x100000001b3))
+    fnv1a_extend(FNV1A_OFFSET, bytes)
+}
+
+/// FNV-1a's state `h` carried over `bytes`.
+fn fnv1a_extend(h: u64, bytes: &[u8]) -> u64 {
+    bytes.iter().fold(h, |h, b| (h ^ *b as u64).wrapping_mul(0x100000001b3))
 }
 
 #[cfg(test)]
