@@ -4,7 +4,8 @@
 //! VIEWPOINT=known or VIEWPOINT=unknown to time one of the two cases only;
 //! REGISTER_OPTIONS='{"race_points": 300}' lays options over the defaults;
 //! FULL_VIEWS=1 registers the whole views instead of 2,000-point subsamples,
-//! DENSE_VIEWS=K each point of the whole views K times (see common/views.rs).
+//! DENSE_VIEWS=K each point of the whole views K times (see common/views.rs);
+//! SPACE=FILE registers with that shape-space artefact instead of the built-in one.
 #[path = "common/views.rs"]
 mod views;
 
@@ -17,7 +18,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let category: Category = args.get(1).map_or("mug", |s| s.as_str()).parse()?;
     let repeats: usize = args.get(2).map_or(Ok(20), |s| s.parse())?;
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/spaces");
-    let registrar = Registrar::new(builtin::load_or_build(category, &root, |_, _| {})?);
+    let space = match std::env::var_os("SPACE") {
+        Some(path) => graspd::shape::ShapeSpace::load(std::path::Path::new(&path))?,
+        None => builtin::load_or_build(category, &root, |_, _| {})?,
+    };
+    let registrar = Registrar::new(space);
     let views = views::test_views(category)?;
     let mut base = serde_json::to_value(RegisterOptions::default())?;
     if let Ok(over) = std::env::var("REGISTER_OPTIONS") {

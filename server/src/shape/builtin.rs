@@ -12,7 +12,8 @@ pub fn artefact_path(cache_dir: &Path, category: Category) -> PathBuf {
 }
 
 /// What the space of a built-in category is built from: the canonical
-/// instance, its keypoints, and the training instances.
+/// instance, its keypoints, the training instances and the
+/// shape-space-only draws ([`tools::shape_space_instances`]).
 struct Inputs {
     canonical: TriMesh,
     keypoints: Vec<NamedPoint>,
@@ -30,9 +31,13 @@ impl Inputs {
         let keypoints_of = |i: &tools::Instance| -> Vec<NamedPoint> {
             i.keypoints.iter().map(|k| NamedPoint { name: k.name.clone(), position: k.position }).collect()
         };
+        // The training split first, so `train_latents[i]` is `<category>_train_0i`.
+        let extra = tools::shape_space_instances(category)
+            .map_err(|e| SpaceError::Artefact { path: category.name().into(), reason: e.to_string() })?;
         let training = family
             .iter()
             .filter(|i| i.split == Split::Train)
+            .chain(&extra)
             .map(|i| TrainingShape { name: i.name.clone(), mesh: i.mesh.clone(), keypoints: keypoints_of(i) })
             .collect();
         Ok(Self { canonical: canonical.mesh.clone(), keypoints: keypoints_of(canonical), training })
