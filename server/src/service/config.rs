@@ -33,10 +33,11 @@ pub struct Config {
     /// thread more, so that one always receives.
     pub workers: u32,
     pub waiting: Waiting,
-    /// With `waiting = "event"`: after answering a Register or Grasp, the
-    /// thread that worked on it keeps receiving for this long before it
-    /// sleeps, so that a client calling again at once finds a running thread
-    /// instead of waking a sleeping one. Microseconds; 0 = off.
+    /// After answering a Register or Grasp, the thread that worked on it
+    /// keeps receiving for this long before it sleeps (event-driven) or
+    /// goes back to wait for the lead (polling), so that a client calling
+    /// again at once finds a running thread with the ports in its cache.
+    /// Microseconds; 0 = off.
     pub linger_us: u64,
     /// Requests slower than this (receipt to answer) are logged and counted, milliseconds.
     pub slow_request_ms: f64,

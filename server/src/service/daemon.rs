@@ -215,6 +215,10 @@ struct Shared {
     /// Threads running an engine job, at most `max_running` (the `workers` option).
     running: AtomicUsize,
     max_running: usize,
+    /// Threads receiving in [`linger_for`] after a job.
+    lingering: AtomicUsize,
+    /// Cores this process may run on (see [`Shared::leader_should_nap`]).
+    cores: usize,
     /// Held by the one thread that receives requests (the leader).
     leadership: Mutex<LeaderState>,
     stop_workers: AtomicBool,
@@ -546,6 +550,21 @@ impl Shared {
                 (Status::new(StatusCode::Internal, format!("internal error: {what}")), None, compute_ns)
             }
         })
+    }
+
+    /// A polling leader naps instead of spinning while other threads of the
+    /// daemon are busy (an engine job, or lingering for the client's next
+    /// request) and the cores could not hold them, the spinning leader and a
+    /// spinning client each on their own. On two cores the leader's spin took
+    /// turns with the engine thread and the client: `graspctl bench --wait
+    /// spin` against a polling daemon, 2-core AMD EPYC, 2026-12-06, transport
+    /// overhead without the fill p50 26-37 µs, of which 15-21 µs inside the
+    /// daemon, against 8 µs event-driven. A request that arrives during a nap
+    /// waits for its end (about 60 µs with Linux's timer slack); with the
+    /// cores to spare, the leader never naps.
+    fn leader_should_nap(&self) -> bool {
+        let busy = self.running.load(Ordering::Relaxed) + self.lingering.load(Ordering::Relaxed);
+        busy > 0 && self.cores < busy + 2
     }
 
     /// Reserves one of the `workers` engine slots.
@@ -939,6 +958,8 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
         queue_capacity: (config.max_clients as usize * config.max_in_flight_per_client as usize).max(1),
         running: AtomicUsize::new(0),
         max_running: workers,
+        lingering: AtomicUsize::new(0),
+        cores: std::thread::available_parallelism().map_or(1, |n| n.get()),
         leadership: Mutex::new(LeaderState { last_house: Instant::now(), last_metrics: Instant::now() }),
         drain_started: Mutex::new(None),
         fatal: Mutex::new(None),
@@ -1089,10 +1110,7 @@ fn thread_main(shared: &Shared, ep: &Endpoints) {
         }
     }
     let _attached = (&guards, &tick);
-    let linger = match shared.config.waiting {
-        Waiting::Event => Duration::from_micros(shared.config.linger_us),
-        Waiting::Poll => Duration::ZERO,
-    };
+    let linger = Duration::from_micros(shared.config.linger_us);
     let mut worked = false;
     loop {
         if shared.stop_workers.load(Ordering::Acquire) {
@@ -1118,10 +1136,10 @@ fn thread_main(shared: &Shared, ep: &Endpoints) {
     }
 }
 
-/// Event-driven waiting, after a job: receives for `window` without
-/// leadership, spinning, and returns the first Register/Grasp taken.
+/// After a job: receives for `window` without leadership, spinning, and
+/// returns the first Register/Grasp taken.
 ///
-/// The leader meanwhile sleeps in its WaitSet, and waking it costs the
+/// Event-driven, the leader meanwhile sleeps in its WaitSet, and waking it costs the
 /// client's next request 100-120 µs on a virtual machine's idle core (the
 /// request leg of `graspctl bench` against an event-driven daemon, 12-05,
 /// a 2-core AMD EPYC), more than the 100 µs the whole round trip may add.
@@ -1129,8 +1147,17 @@ fn thread_main(shared: &Shared, ep: &Endpoints) {
 /// calls again at once is received here in a few microseconds. Two threads
 /// may then receive at once, which iceoryx2's thread-safe ports allow; the
 /// leader, woken by the same request's notification, finds nothing and
-/// sleeps again.
+/// sleeps again. Polling, the leader naps meanwhile where the cores are
+/// short ([`Shared::leader_should_nap`]), and this thread, its cache warm,
+/// takes the client's next request.
 fn linger_for(shared: &Shared, ep: &Endpoints, window: Duration) -> Option<Job> {
+    shared.lingering.fetch_add(1, Ordering::AcqRel);
+    let job = linger_loop(shared, ep, window);
+    shared.lingering.fetch_sub(1, Ordering::AcqRel);
+    job
+}
+
+fn linger_loop(shared: &Shared, ep: &Endpoints, window: Duration) -> Option<Job> {
     let until = Instant::now() + window;
     while Instant::now() < until {
         if shared.stop_workers.load(Ordering::Acquire) || shared.draining.load(Ordering::Relaxed) {
@@ -1214,9 +1241,13 @@ fn lead(shared: &Shared, ep: &Endpoints, waitset: Option<&WaitSet<Ipc>>, st: &mu
             None => {
                 // Spin; after 50 µs without work, yield the core between looks (a
                 // runnable engine thread or client on a busy machine gets it; on an
-                // idle core a yield returns at once).
+                // idle core a yield returns at once). Nap while the cores are
+                // needed by the daemon's busy threads and a client.
                 idle_spins += 1;
-                if idle_spins > 512 && idle_since.get_or_insert_with(Instant::now).elapsed() > Duration::from_micros(50)
+                if shared.leader_should_nap() {
+                    std::thread::sleep(Duration::from_micros(20));
+                } else if idle_spins > 512
+                    && idle_since.get_or_insert_with(Instant::now).elapsed() > Duration::from_micros(50)
                 {
                     std::thread::yield_now();
                 } else {
