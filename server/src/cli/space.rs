@@ -1,7 +1,7 @@
 use super::{assets_dir, print_json, progress_bar, CliResult};
 use clap::Subcommand;
 use graspd::shape::builtin;
-use graspd::shape::{BuildOptions, ShapeSpace};
+use graspd::shape::ShapeSpace;
 use graspd::tools::Category;
 use std::path::PathBuf;
 
@@ -14,7 +14,7 @@ pub enum SpaceCommand {
         /// Artefact directory (default: assets/spaces).
         #[arg(long)]
         out: Option<PathBuf>,
-        /// Build options as a JSON object laid over the defaults (e.g.
+        /// Build options as a JSON object laid over the category's (e.g.
         /// '{"cpd": {"beta": 1.5}}'; field names as in `BuildOptions`).
         #[arg(long)]
         options: Option<String>,
@@ -50,8 +50,8 @@ pub fn run(cmd: SpaceCommand) -> CliResult {
         SpaceCommand::Build { category, out, options, json } => {
             let category: Category = category.parse()?;
             let opts = match options {
-                Some(j) => super::overlay_json(BuildOptions::default(), &j, "--options")?,
-                None => BuildOptions::default(),
+                Some(j) => super::overlay_json(builtin::options(category), &j, "--options")?,
+                None => builtin::options(category),
             };
             let bar = progress_bar(10, "instances");
             let (space, report) = builtin::build(category, &opts, |i, n| {

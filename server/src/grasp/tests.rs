@@ -979,7 +979,8 @@ fn pregrasp_search_clears_the_table_under_a_drill() {
     let family = tools::family(Category::Drill).unwrap();
     let canonical = family.iter().find(|i| i.split == Split::Canonical).unwrap();
     let (space, _) =
-        crate::shape::builtin::build(Category::Drill, &crate::shape::BuildOptions::default(), |_, _| {}).unwrap();
+        crate::shape::builtin::build(Category::Drill, &crate::shape::builtin::options(Category::Drill), |_, _| {})
+            .unwrap();
     let keypoints = demo.keypoints(&hand).unwrap();
     let model = TransferModel::new(&space, &keypoints, &canonical.mesh);
     let tool = TransferredTool::from_latent(&model, &space.train_latents[0]).unwrap();

@@ -5,7 +5,7 @@
 use super::builtin;
 use super::cpd::{self, EmOptions, RigidOptions};
 use super::register::RegisterError;
-use super::space::{BuildOptions, ShapeSpace};
+use super::space::ShapeSpace;
 use super::{RegisterOptions, Registrar};
 use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
 use crate::geometry::sample_points;
@@ -16,8 +16,9 @@ use std::sync::OnceLock;
 
 fn mug_space() -> &'static ShapeSpace {
     static SPACE: OnceLock<ShapeSpace> = OnceLock::new();
-    SPACE
-        .get_or_init(|| builtin::build(Category::Mug, &BuildOptions::default(), |_, _| {}).expect("mug space builds").0)
+    SPACE.get_or_init(|| {
+        builtin::build(Category::Mug, &builtin::options(Category::Mug), |_, _| {}).expect("mug space builds").0
+    })
 }
 
 fn mug_registrar() -> &'static Registrar {
@@ -29,7 +30,9 @@ fn hammer_registrar() -> &'static Registrar {
     static REG: OnceLock<Registrar> = OnceLock::new();
     REG.get_or_init(|| {
         Registrar::new(
-            builtin::build(Category::Hammer, &BuildOptions::default(), |_, _| {}).expect("hammer space builds").0,
+            builtin::build(Category::Hammer, &builtin::options(Category::Hammer), |_, _| {})
+                .expect("hammer space builds")
+                .0,
         )
     })
 }
@@ -306,7 +309,7 @@ fn jacobian_determinant_matches_finite_differences() {
 #[test]
 fn built_in_spaces_do_not_fold() {
     for category in Category::ALL {
-        let (space, report) = builtin::build(category, &BuildOptions::default(), |_, _| {}).unwrap();
+        let (space, report) = builtin::build(category, &builtin::options(category), |_, _| {}).unwrap();
         let worst = report.min_jacobian_determinant.iter().copied().fold(f64::INFINITY, f64::min);
         assert!(
             worst > 0.05,
@@ -329,7 +332,7 @@ fn built_in_spaces_do_not_fold() {
 #[test]
 fn folding_fits_are_refitted_stiffer() {
     // λ = 3 folds most hammers (measured: 7 of 10 training handles mirrored).
-    let mut opts = BuildOptions::default();
+    let mut opts = builtin::options(Category::Hammer);
     opts.cpd.lambda = 3.0;
     let (_, report) = builtin::build(Category::Hammer, &opts, |_, _| {}).unwrap();
     assert!(report.stiffened.len() >= 3, "stiffened {:?}", report.stiffened);
@@ -701,9 +704,10 @@ fn squarem_brings_the_latent_fit_nearer_convergence_in_the_same_iterations() {
     // grazing angle flip their weight as the pose moves, which moves the
     // long fit's end too (the fits' iterations in `bench_register` did not
     // change: mug 76.0 → 74.9 a fit, drill 48.3 → 49.2, hammer 50.7 → 47.0).
-    // With the 20-draw, 12-mode space (2026-12-06): 1.57 against 1.88; it
-    // still pays there (eval transfer, seeds 7 / 11 / 23, without it: hammer
-    // test median 1.45 -> 1.49 mm, mug p90 8.73 -> 9.18, fits 0.4-0.6 ms longer).
+    // With the 20-draw space (2026-12-06): 1.40 against 2.11 at its 9 modes,
+    // 1.57 against 1.88 at 12; at 12 it still paid (eval transfer, seeds 7 /
+    // 11 / 23, without it: hammer test median 1.45 -> 1.49 mm, mug p90 8.73
+    // -> 9.18, fits 0.4-0.6 ms longer).
     let reg = mug_registrar();
     let test = tools::family(Category::Mug).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap();
     let refine_only = RegisterOptions { polish_points: 0, tol: 1e-12, ..RegisterOptions::default() };
@@ -719,7 +723,7 @@ fn squarem_brings_the_latent_fit_nearer_convergence_in_the_same_iterations() {
         fast_gap += gap(fit(true, 40));
     }
     eprintln!("latent distance to the converged fit after 40 iterations: plain {plain_gap:.3}, SQUAREM {fast_gap:.3}");
-    assert!(fast_gap < 0.9 * plain_gap, "plain {plain_gap:.3}, SQUAREM {fast_gap:.3}");
+    assert!(fast_gap < 0.75 * plain_gap, "plain {plain_gap:.3}, SQUAREM {fast_gap:.3}");
 }
 
 /// A hammer whose handle is much longer than the mean shape's (the family's
@@ -749,18 +753,20 @@ fn a_long_handle_in_view_is_fitted_to_its_end() {
             e.push((Vector3::from(r.keypoints[end].position) - truth.coords).norm() * 1e3);
         }
     }
+    eprintln!("handle end error per view, mm: {:.1?}, without re-annealing {:.1?}", errs[0], errs[1]);
     let [annealed, settled] = errs.map(|mut e| {
         e.sort_by(f64::total_cmp);
         e[e.len() / 2]
     });
-    // Here: 8.0 mm (views 8.0 / 9.2 / 6.7 / 8.0 / 10.9 / 0.4); 28.4 mm
+    // Here: 10.3 mm (views 10.3 / 11.1 / 1.6 / 10.0 / 12.8 / 0.9); 30.8 mm
     // without re-annealing. With the 10-draw space (9 modes) it was 4.0 and
-    // 29.7: the 20-draw space fits this, the family's longest handle, at
-    // scale 0.95 with its first mode at about 2.2 of the true 4.1, the rest
-    // of the length taken off the scale. A weaker latent prior (1, 0.5)
-    // reaches further here (7.7, 3.7 mm) but not on the test tools (eval
-    // transfer, seeds 7 / 11 / 23, weight 1: hammer 1.45 -> 1.50 mm).
-    // Measured and left; the bound checks what re-annealing is for.
+    // 29.7, with the 20-draw space at 12 modes 8.0 and 28.4: that space fits
+    // this, the family's longest handle, at scale 0.95 with its first mode
+    // at about 2.2 of the true 4.1, the rest of the length taken off the
+    // scale. A weaker latent prior (1, 0.5; 12 modes) reaches further here
+    // (7.7, 3.7 mm) but not on the test tools (eval transfer, seeds 7 / 11 /
+    // 23, weight 1: hammer 1.45 -> 1.50 mm). Measured and left; the bound
+    // checks what re-annealing is for.
     assert!(annealed < 12.0, "handle end {annealed:.1} mm off (median; {settled:.1} mm without re-annealing)");
 }
 
@@ -826,7 +832,8 @@ fn a_known_table_holds_the_tool_on_it() {
 ///
 /// Accuracy is compared as the median over seven views: on one view either
 /// cloud may land a few millimetres off by its sample alone (measured,
-/// keypoint median per view, view / dense, 2026-12-06: 1.0 / 1.7, 1.1 /
+/// keypoint median per view, view / dense, 2026-12-06, the 20-draw space at
+/// 12 modes: 1.0 / 1.7, 1.1 /
 /// 5.1, 1.5 / 2.3, 1.3 / 1.9, 1.8 / 1.6, 1.2 / 2.7, 1.5 / 1.8 mm). Until
 /// then the test took one view and compared it without outliers, which
 /// held by luck of the view: the 20-draw shape space moved it to 4.1 mm.

@@ -358,10 +358,11 @@ fn draw_space_only<T: ToolModel>(wrap: fn(T) -> ToolParams, tests: &[Vec<f64>]) 
 ///
 /// Why: with 10 training tools the space's 9 modes could not reach the test
 /// tools' shapes even from their whole surfaces (mug keypoint median 1.71 mm
-/// on `eval transfer --full-surface`, seed 7). 20 draws give the mug 1.24 mm
-/// there, and on single partial views (`eval transfer --views 12`, seeds
-/// 7 / 11 / 23, test median / p90 mm) mug 1.83 / 9.14 -> 1.67 / 8.87, drill
-/// 2.06 / 4.96 -> 1.57 / 3.83, hammer 1.66 / 4.34 -> 1.54 / 3.47.
+/// on `eval transfer --full-surface`, seed 7). 20 draws (16 modes) give the
+/// mug 1.24 mm there, and on single partial views (`eval transfer --views
+/// 12`, seeds 7 / 11 / 23, test median / p90 mm, the modes of
+/// `shape::builtin::options`) mug 1.83 / 9.14 -> 1.72 / 8.68, drill 2.06 /
+/// 4.96 -> 1.63 / 4.19, hammer 1.66 / 4.34 -> 1.47 / 3.37.
 pub fn shape_space_instances(category: Category) -> Result<Vec<Instance>, ToolsError> {
     let tests: Vec<Vec<f64>> =
         family_params(category)?.into_iter().filter(|s| s.split == Split::Test).map(|s| s.params.features()).collect();
