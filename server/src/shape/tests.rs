@@ -51,6 +51,13 @@ fn on_side(mesh: &crate::geometry::TriMesh, yaw: f64) -> Isometry3<f64> {
     Isometry3::from_parts(Translation3::new(0.02, 0.04, -zmin), rot)
 }
 
+/// The middle value (the upper of the two for an even count).
+fn median(v: &[f64]) -> f64 {
+    let mut v = v.to_vec();
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
 /// One noisy view of `mesh` placed at `yaw` on a table.
 fn view_of(mesh: &crate::geometry::TriMesh, yaw: f64, view: usize) -> (Vec<Point3<f64>>, Isometry3<f64>) {
     let pose = on_table(yaw);
@@ -797,11 +804,6 @@ fn a_known_table_holds_the_tool_on_it() {
             }
         }
     }
-    let median = |v: &[f64]| {
-        let mut v = v.to_vec();
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
     let largest = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
     eprintln!(
         "lowest point off the table, median / largest: {:.2} / {:.2} mm without, {:.2} / {:.2} with; keypoints median {:.2} / {:.2} mm",
@@ -890,11 +892,6 @@ fn a_200k_point_view_registers_from_its_working_subsample() {
             r_dense.fit.stray_points
         );
     }
-    let median = |v: &[f64]| {
-        let mut v = v.to_vec();
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
     let (v, d) = (median(&view_errors), median(&dense_errors));
     assert!(d < v.max(2.0) + 1.0, "keypoint median over the views {d:.2} mm, the views alone {v:.2}: {dense_errors:.1?} against {view_errors:.1?}");
 }

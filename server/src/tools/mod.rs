@@ -299,26 +299,28 @@ fn draw_family<T: ToolModel>(wrap: fn(T) -> ToolParams) -> Result<Vec<FamilySlot
         out.push(slot(format!("{c}_train_{i:02}"), Split::Train, Some(seed), p));
     }
     for k in 0..N_TEST {
-        // Each test slot has its own seed; redraws continue its stream.
         let seed = base + 1001 + k as u64;
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let mut found = None;
-        for _ in 0..MAX_TEST_DRAWS {
-            let mut p = T::sample(&mut rng);
-            p.assign_slot(Split::Test, k);
-            let f = p.features();
-            if train_features.iter().all(|t| param_distance(&f, t) >= MIN_TEST_DISTANCE) {
-                found = Some(p);
-                break;
-            }
-        }
-        let p = found.ok_or_else(|| ToolsError::Sampling {
+        let p = draw_apart::<T>(seed, Split::Test, k, &train_features).ok_or_else(|| ToolsError::Sampling {
             category: c,
             reason: format!("no test draw {MIN_TEST_DISTANCE} away from all training instances"),
         })?;
         out.push(slot(format!("{c}_test_{k:02}"), Split::Test, Some(seed), p));
     }
     Ok(out)
+}
+
+/// The first draw of slot `index` of `split` from `seed`'s stream (each slot
+/// has its own seed; redraws continue its stream) that lies at least
+/// [`MIN_TEST_DISTANCE`] from every one of `apart_from` (features), or None
+/// after [`MAX_TEST_DRAWS`].
+fn draw_apart<T: ToolModel>(seed: u64, split: Split, index: usize, apart_from: &[Vec<f64>]) -> Option<T> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    (0..MAX_TEST_DRAWS).find_map(|_| {
+        let mut p = T::sample(&mut rng);
+        p.assign_slot(split, index);
+        let f = p.features();
+        apart_from.iter().all(|t| param_distance(&f, t) >= MIN_TEST_DISTANCE).then_some(p)
+    })
 }
 
 /// Draws the shape-space-only slots: seeds after the training ones, each
@@ -330,24 +332,11 @@ fn draw_space_only<T: ToolModel>(wrap: fn(T) -> ToolParams, tests: &[Vec<f64>]) 
     (0..N_SPACE_ONLY)
         .map(|k| {
             let seed = c.seed_base() + 501 + k as u64;
-            let mut rng = ChaCha8Rng::seed_from_u64(seed);
-            for _ in 0..MAX_TEST_DRAWS {
-                let mut p = T::sample(&mut rng);
-                p.assign_slot(Split::Train, k);
-                let f = p.features();
-                if tests.iter().all(|t| param_distance(&f, t) >= MIN_TEST_DISTANCE) {
-                    return Ok(FamilySlot {
-                        name: format!("{c}_space_{k:02}"),
-                        split: Split::Train,
-                        seed: Some(seed),
-                        params: wrap(p),
-                    });
-                }
-            }
-            Err(ToolsError::Sampling {
+            let p = draw_apart::<T>(seed, Split::Train, k, tests).ok_or_else(|| ToolsError::Sampling {
                 category: c,
                 reason: format!("no shape-space draw {MIN_TEST_DISTANCE} away from all test instances"),
-            })
+            })?;
+            Ok(FamilySlot { name: format!("{c}_space_{k:02}"), split: Split::Train, seed: Some(seed), params: wrap(p) })
         })
         .collect()
 }
