@@ -128,7 +128,9 @@ impl Default for BuildOptions {
             // `builtin::options`). Test median / p90 mm (eval transfer --views 12,
             // means of seeds 7 / 11 / 23) with 9 / 12 / 16 modes: drill 1.86 /
             // 4.79, 1.63 / 4.19, 1.57 / 3.83; mug 1.72 / 8.68, 1.70 / 8.73,
-            // 1.67 / 8.87; hammer 1.54 / 3.45, 1.51 / 3.43, 1.54 / 3.47.
+            // 1.67 / 8.87; hammer 1.54 / 3.45, 1.51 / 3.43, 1.54 / 3.47 (on a
+            // first draw of its extra instances; with the final one, 9 and 12
+            // modes: 1.47 / 3.37, 1.45 / 3.41).
             // Registration p50 (bench_register, known viewpoint) mug 6.45 /
             // 6.79 / 7.4 ms, drill 5.4 / 5.7 / 6.2 (10 draws, 9 modes: 6.67,
             // 5.2): modes past 12 cost 0.6 ms for what only the drill gains.
