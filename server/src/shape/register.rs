@@ -191,6 +191,16 @@ pub struct RegisterOptions {
     /// always nearer an unseen drill). Refine stage p50 (`bench_register`)
     /// 0.1-0.7 ms shorter: the fits still end at `fine_iters` more often than
     /// at `tol`, and 20 iterations cost the mug's p90 (seed 7 11.3 → 13.9 mm).
+    /// The surfel polish takes them too (since 2026-12-06): plain, its σ_n
+    /// fell and σ_t and the latent drifted a little further each iteration,
+    /// still moving at the 10th (a mug view's first mode −2.21 → −1.80 over
+    /// them). Measured, the same evals, means of the three seeds, test median
+    /// / p90, plain → SQUAREM, 10 iterations: mug 1.72 / 8.68 → 1.70 / 8.59,
+    /// drill 1.63 / 4.19 → 1.57 / 4.31, hammer 1.47 / 3.37 → 1.47 / 3.06;
+    /// fresh seeds 31 / 47 / 59, mug 1.76 / 11.90 → 1.70 / 11.58; the polish's
+    /// time unchanged. With 6 SQUAREM iterations (polish 0.55-0.6 ms shorter)
+    /// the medians were as before, the mug's p90 9.02 (fresh 12.25); 7: 8.93
+    /// (12.09); 8: 8.83.
     pub accelerate: bool,
     /// Subsample the view evenly over its surface (one point per voxel)
     /// instead of uniformly over its points. A depth view is dense where the
@@ -1185,7 +1195,7 @@ fn rotation_between(a: &Matrix3<f64>, b: &Matrix3<f64>) -> f64 {
 }
 
 /// At most `n` points of the view: spread evenly over its surface, or uniformly.
-fn view_subset(x: &[P3], n: usize, even: bool, rng: &mut rand_chacha::ChaCha8Rng) -> Vec<P3> {
+pub(super) fn view_subset(x: &[P3], n: usize, even: bool, rng: &mut rand_chacha::ChaCha8Rng) -> Vec<P3> {
     if even {
         even_subsample(x, n, rng)
     } else {

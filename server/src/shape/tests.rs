@@ -21,7 +21,7 @@ fn mug_space() -> &'static ShapeSpace {
     })
 }
 
-fn mug_registrar() -> &'static Registrar {
+pub(super) fn mug_registrar() -> &'static Registrar {
     static REG: OnceLock<Registrar> = OnceLock::new();
     REG.get_or_init(|| Registrar::new(mug_space().clone()))
 }
@@ -59,7 +59,7 @@ fn median(v: &[f64]) -> f64 {
 }
 
 /// One noisy view of `mesh` placed at `yaw` on a table.
-fn view_of(mesh: &crate::geometry::TriMesh, yaw: f64, view: usize) -> (Vec<Point3<f64>>, Isometry3<f64>) {
+pub(super) fn view_of(mesh: &crate::geometry::TriMesh, yaw: f64, view: usize) -> (Vec<Point3<f64>>, Isometry3<f64>) {
     let pose = on_table(yaw);
     (capture(mesh, &pose, pose * Point3::new(0.0, 0.0, 0.05), view, 3).0, pose)
 }

@@ -407,16 +407,51 @@ pub(super) fn em(
     run.load(&st);
     st.sigma2 = sigma2_init.unwrap_or_else(|| initial_sigma2(x, &run.y_world));
     let accelerate = opts.accelerate && prior.is_some();
+    let (st, nll, iterations) = squarem(&mut run, st, accelerate, iters, opts.tol);
+    Fit { pose: st.pose, latent: st.latent, sigma2: st.sigma2, nll, iterations }
+}
+
+/// One fit's EM map, as [`squarem`] drives it.
+pub(super) trait EmMap {
+    type State: Clone;
+    /// Evaluate the model at a state set from outside.
+    fn load(&mut self, st: &Self::State);
+    /// E-step at `st` (loaded), then the M-step into `st`: the E-step's
+    /// negative log-likelihood, or None when no data point is explained.
+    /// The view's weights are those of the last step unless `refresh_weights`.
+    fn step(&mut self, st: &mut Self::State, refresh_weights: bool) -> Option<f64>;
+    /// SQUAREM's jump from three successive states and its step length α
+    /// (see [`squarem_jump`]).
+    fn extrapolate(
+        &self,
+        s0: &Self::State,
+        s1: &Self::State,
+        s2: &Self::State,
+        max_step: f64,
+    ) -> Option<(Self::State, f64)>;
+}
+
+/// At most `iters` EM steps of `map` from `st` (loaded), until the relative
+/// change of the negative log-likelihood falls below `tol`; with
+/// `accelerate`, in SQUAREM cycles. The last state, its E-step's negative
+/// log-likelihood and the steps taken.
+pub(super) fn squarem<M: EmMap>(
+    map: &mut M,
+    mut st: M::State,
+    accelerate: bool,
+    iters: usize,
+    tol: f64,
+) -> (M::State, f64, usize) {
     let (mut prev, mut nll, mut it) = (f64::INFINITY, f64::INFINITY, 0);
     // One EM step; break when no point is explained or the fit has converged.
     macro_rules! em_step {
         ($st:expr, $refresh:expr) => {{
             it += 1;
-            match run.step(&mut $st, $refresh) {
+            match map.step(&mut $st, $refresh) {
                 None => break,
                 Some(v) => {
                     nll = v;
-                    if (prev - nll).abs() <= opts.tol * nll.abs().max(1e-12) {
+                    if (prev - nll).abs() <= tol * nll.abs().max(1e-12) {
                         break;
                     }
                     prev = nll;
@@ -439,9 +474,9 @@ pub(super) fn em(
         let s1 = st.clone();
         let nll1 = em_step!(st, false);
         let s2 = st.clone();
-        let Some((jump, alpha)) = run.extrapolate(&s0, &s1, &s2, max_step) else { continue };
+        let Some((jump, alpha)) = map.extrapolate(&s0, &s1, &s2, max_step) else { continue };
         st = jump;
-        run.load(&st);
+        map.load(&st);
         let nll_jump = em_step!(st, false);
         if nll_jump <= nll1 {
             if alpha <= -max_step {
@@ -452,11 +487,76 @@ pub(super) fn em(
             max_step = (max_step / 2.0).max(1.0);
             // (s2's own likelihood is unknown until its E-step; nll1 bounds it.)
             st = s2;
-            run.load(&st);
+            map.load(&st);
             (prev, nll) = (nll1, nll1);
         }
     }
-    Fit { pose: st.pose, latent: st.latent, sigma2: st.sigma2, nll, iterations: it }
+    (st, nll, it)
+}
+
+/// SQUAREM's coordinates of a fit's state, made commensurate: rotation as
+/// a rotation vector from a reference state's (radians), translation over
+/// its scale, log scale, log σ of each variance, and the latent over its
+/// prior std.
+pub(super) struct JumpCoords {
+    r0: Matrix3<f64>,
+    unit: f64,
+    std: Vec<f64>,
+    scale_range: (f64, f64),
+}
+
+impl JumpCoords {
+    /// Coordinates about `pose`; `scale_range` bounds the scale a jump may reach.
+    pub(super) fn new(pose: &Pose, prior_var: Option<&[f64]>, q: usize, scale_range: (f64, f64)) -> Self {
+        let std = match prior_var {
+            Some(var) => var.iter().map(|v| v.max(1e-12).sqrt()).collect(),
+            None => vec![1.0; q],
+        };
+        Self { r0: pose.r, unit: pose.s.max(1e-12), std, scale_range }
+    }
+
+    pub(super) fn pack(&self, pose: &Pose, variances: &[f64], latent: &[f64]) -> Vec<f64> {
+        let w = Rotation3::from_matrix_unchecked(self.r0.transpose() * pose.r).scaled_axis();
+        let mut v = vec![w.x, w.y, w.z];
+        v.extend((pose.t / self.unit).iter());
+        v.push(pose.s.ln());
+        v.extend(variances.iter().map(|s2| 0.5 * s2.ln()));
+        v.extend(latent.iter().zip(&self.std).map(|(l, sd)| l / sd));
+        v
+    }
+
+    /// The pose, the `n_variances` variances and the latent at `th`.
+    pub(super) fn unpack(&self, th: &[f64], n_variances: usize) -> (Pose, Vec<f64>, Vec<f64>) {
+        let rot = self.r0 * Rotation3::new(Vector3::new(th[0], th[1], th[2])).into_inner();
+        // Re-orthonormalise (the product drifts by round-off only, but a
+        // rotation must stay one).
+        let rot = Rotation3::from_matrix(&rot).into_inner();
+        let (smin, smax) = self.scale_range;
+        let pose = Pose { r: rot, t: Vector3::new(th[3], th[4], th[5]) * self.unit, s: th[6].exp().clamp(smin, smax) };
+        let variances = th[7..7 + n_variances].iter().map(|l| (2.0 * l).exp().max(1e-10)).collect();
+        let latent = th[7 + n_variances..].iter().zip(&self.std).map(|(l, sd)| l * sd).collect();
+        (pose, variances, latent)
+    }
+}
+
+/// SQUAREM's jump from three successive points (t1 = F(t0), t2 = F(t1)):
+/// θ' = θ0 − 2αr + α²v with r = θ1 − θ0, v = θ2 − 2θ1 + θ0 and α =
+/// −|r|/|v| (−1 gives t2 back, so α is kept within [−max_step, −1]). None
+/// when the path is straight enough that the jump is no step at all, or
+/// degenerate.
+pub(super) fn squarem_jump(t0: &[f64], t1: &[f64], t2: &[f64], max_step: f64) -> Option<(Vec<f64>, f64)> {
+    let r: Vec<f64> = t1.iter().zip(t0).map(|(a, b)| a - b).collect();
+    let v: Vec<f64> = (0..t0.len()).map(|i| t2[i] - 2.0 * t1[i] + t0[i]).collect();
+    let (rn, vn) = (r.iter().map(|a| a * a).sum::<f64>().sqrt(), v.iter().map(|a| a * a).sum::<f64>().sqrt());
+    if !(vn > 1e-15 && rn.is_finite()) {
+        return None;
+    }
+    let alpha = (-rn / vn).clamp(-max_step, -1.0);
+    if alpha > -1.0 - 1e-9 {
+        return None;
+    }
+    let th: Vec<f64> = (0..t0.len()).map(|i| t0[i] - 2.0 * alpha * r[i] + alpha * alpha * v[i]).collect();
+    th.iter().all(|a| a.is_finite()).then_some((th, alpha))
 }
 
 /// SQUAREM's longest jump, in EM steps, at first and at most.
@@ -515,18 +615,24 @@ impl<'a> EmRun<'a> {
         }
     }
 
-    /// Evaluate the model at a state set from outside.
-    pub(super) fn load(&mut self, st: &EmState) {
+    pub(super) fn scale_range(&self) -> (f64, f64) {
+        (
+            self.inputs.opts.scale_range.0 * self.inputs.norm.scale,
+            self.inputs.opts.scale_range.1 * self.inputs.norm.scale,
+        )
+    }
+}
+
+impl EmMap for EmRun<'_> {
+    type State = EmState;
+
+    fn load(&mut self, st: &EmState) {
         self.inputs.model.evaluate_into(&st.latent, &mut self.y_model);
         self.y_world.clear();
         self.y_world.extend(self.y_model.iter().map(|y| st.pose.apply(y)));
     }
 
-    /// E-step at `st` (whose model `y_model`/`y_world` hold), then the M-step
-    /// into `st`. The E-step's negative log-likelihood, or None when no data
-    /// point is explained. The view's weights are those of the last step
-    /// unless `refresh_weights` (`em` refreshes them at its first).
-    pub(super) fn step(&mut self, st: &mut EmState, refresh_weights: bool) -> Option<f64> {
+    fn step(&mut self, st: &mut EmState, refresh_weights: bool) -> Option<f64> {
         let (x, opts, norm) = (self.inputs.x, self.inputs.opts, self.inputs.norm);
         let sigma2 = st.sigma2;
         if refresh_weights {
@@ -592,66 +698,13 @@ impl<'a> EmRun<'a> {
         Some(nll)
     }
 
-    pub(super) fn scale_range(&self) -> (f64, f64) {
-        (
-            self.inputs.opts.scale_range.0 * self.inputs.norm.scale,
-            self.inputs.opts.scale_range.1 * self.inputs.norm.scale,
-        )
-    }
-
-    /// SQUAREM's jump from three successive states (s1 = F(s0), s2 = F(s1)):
-    /// θ' = θ0 − 2αr + α²v with r = θ1 − θ0, v = θ2 − 2θ1 + θ0 and α =
-    /// −|r|/|v| (−1 gives s2 back, so α is kept within [−max_step, −1]). The
-    /// parameters are made commensurate first: rotation as a rotation vector
-    /// from s0's (radians), translation over the scale, log scale, log σ, and
-    /// the latent over its prior std. None when the path is straight
-    /// enough that the jump is no step at all, or degenerate.
-    pub(super) fn extrapolate(
-        &self,
-        s0: &EmState,
-        s1: &EmState,
-        s2: &EmState,
-        max_step: f64,
-    ) -> Option<(EmState, f64)> {
-        let r0 = s0.pose.r;
-        let unit = s0.pose.s.max(1e-12);
-        let std: Vec<f64> = match self.inputs.prior {
-            Some((var, _)) => var.iter().map(|v| v.max(1e-12).sqrt()).collect(),
-            None => vec![1.0; s0.latent.len()],
-        };
-        let pack = |s: &EmState| -> Vec<f64> {
-            let w = Rotation3::from_matrix_unchecked(r0.transpose() * s.pose.r).scaled_axis();
-            let mut v = vec![w.x, w.y, w.z];
-            v.extend((s.pose.t / unit).iter());
-            v.push(s.pose.s.ln());
-            v.push(0.5 * s.sigma2.ln());
-            v.extend(s.latent.iter().zip(&std).map(|(l, sd)| l / sd));
-            v
-        };
-        let (t0, t1, t2) = (pack(s0), pack(s1), pack(s2));
-        let r: Vec<f64> = t1.iter().zip(&t0).map(|(a, b)| a - b).collect();
-        let v: Vec<f64> = (0..t0.len()).map(|i| t2[i] - 2.0 * t1[i] + t0[i]).collect();
-        let (rn, vn) = (r.iter().map(|a| a * a).sum::<f64>().sqrt(), v.iter().map(|a| a * a).sum::<f64>().sqrt());
-        if !(vn > 1e-15 && rn.is_finite()) {
-            return None;
-        }
-        let alpha = (-rn / vn).clamp(-max_step, -1.0);
-        if alpha > -1.0 - 1e-9 {
-            return None;
-        }
-        let th: Vec<f64> = (0..t0.len()).map(|i| t0[i] - 2.0 * alpha * r[i] + alpha * alpha * v[i]).collect();
-        if th.iter().any(|a| !a.is_finite()) {
-            return None;
-        }
-        let rot = r0 * Rotation3::new(Vector3::new(th[0], th[1], th[2])).into_inner();
-        // Re-orthonormalise (the product drifts by round-off only, but a
-        // rotation must stay one).
-        let rot = Rotation3::from_matrix(&rot).into_inner();
-        let (smin, smax) = self.scale_range();
-        let pose = Pose { r: rot, t: Vector3::new(th[3], th[4], th[5]) * unit, s: th[6].exp().clamp(smin, smax) };
-        let sigma2 = (2.0 * th[7]).exp().max(1e-10);
-        let latent = th[8..].iter().zip(&std).map(|(l, sd)| l * sd).collect();
-        Some((EmState { pose, latent, sigma2 }, alpha))
+    fn extrapolate(&self, s0: &EmState, s1: &EmState, s2: &EmState, max_step: f64) -> Option<(EmState, f64)> {
+        let var = self.inputs.prior.map(|(var, _)| var);
+        let coords = JumpCoords::new(&s0.pose, var, s0.latent.len(), self.scale_range());
+        let pack = |s: &EmState| coords.pack(&s.pose, &[s.sigma2], &s.latent);
+        let (th, alpha) = squarem_jump(&pack(s0), &pack(s1), &pack(s2), max_step)?;
+        let (pose, variances, latent) = coords.unpack(&th, 1);
+        Some((EmState { pose, latent, sigma2: variances[0] }, alpha))
     }
 }
 

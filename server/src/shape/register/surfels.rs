@@ -6,12 +6,13 @@
 //! the data term is Σₘ P1ₘ (x̄ₘ − s R yₘ − t)ᵀ Λₘ (x̄ₘ − s R yₘ − t) + const
 //! (x̄ₘ = PXₘ / P1ₘ, Λₘ = I/σ_t² + (1/σ_n² − 1/σ_t²) nₘnₘᵀ), so the pose
 //! takes Gauss-Newton steps on it (a generalised EM: each step lowers the
-//! objective), and the latent its exact weighted least squares.
+//! objective), and the latent its exact weighted least squares. SQUAREM
+//! drives it as it drives the refine (`em::squarem`).
 
-use super::em::{add_support_term, dot_slices, Fit, Support, View};
+use super::em::{add_support_term, dot_slices, squarem, squarem_jump, EmMap, Fit, JumpCoords, Support, View};
 use super::{LatentLevel, RegisterOptions, LOOSE_SCALE_PRIOR_STD};
 use crate::shape::cpd::Normalization;
-use crate::shape::estep::{dot, Posteriors, Surfels, P3};
+use crate::shape::estep::{dot, EStep, Posteriors, Surfels, P3};
 use crate::simd::clear_upper_state;
 use faer::prelude::*;
 use faer::Side;
@@ -53,76 +54,161 @@ pub(super) fn em_surfels(
     iters: usize,
     norm: &Normalization,
 ) -> Fit {
-    let (model, normals, step) = (&level.model, &level.normals, &level.step);
-    let m = model.len();
-    let mut estep = super::new_estep(x);
-    estep.use_model_order(model.block_order(), m);
-    estep.cutoff_sigmas = CUTOFF_SIGMAS;
-    let mut post = Posteriors::default();
-    let mut pose = start.pose;
-    let mut latent = start.latent.clone();
-    let (mut tangent2, mut normal2) = (sigma2, sigma2);
-    let mut y_model = Vec::with_capacity(m);
-    let mut y_world: Vec<P3> = Vec::with_capacity(m);
-    let mut n_world: Vec<P3> = Vec::with_capacity(m);
-    let mut weights = Vec::new();
-    let mut contact = Vec::new();
-    // Each basis vector's component along the point's canonical normal (the
-    // latent's normal equations need Bᵢᵀnᵢ); columns over the points.
-    let basis_normal: Vec<Vec<f64>> =
-        model.basis.iter().map(|b| b.iter().zip(normals).map(|(v, n)| dot(v, n)).collect()).collect();
-    let (mut prev, mut nll, mut it) = (f64::INFINITY, f64::INFINITY, 0);
-    model.evaluate_into(&latent, &mut y_model);
-    while it < iters {
-        it += 1;
-        y_world.clear();
-        y_world.extend(y_model.iter().map(|y| pose.apply(y)));
-        n_world.clear();
-        n_world.extend(normals.iter().map(|n| -> P3 { (pose.r * Vector3::from(*n)).into() }));
-        let surfels = Surfels { normals: &n_world, tangent_sigma2: tangent2, normal_sigma2: normal2 };
-        let w = view.weights(&pose, &y_world, surfels.equivalent_sigma2(), &mut weights);
-        let residuals = estep.run_surfels(&y_world, &surfels, w, opts.outlier_weight, &mut post);
-        nll = post.neg_log_likelihood;
+    let mut run = SurfelRun::new(level, view, x, prior, support, opts, norm);
+    let st = SurfelState { pose: start.pose, latent: start.latent.clone(), tangent2: sigma2, normal2: sigma2 };
+    run.load(&st);
+    // SQUAREM as in the refine (`em`): σ_n falls and σ_t and the latent
+    // drift a little further each plain iteration, still moving after 10.
+    let accelerate = opts.accelerate && prior.is_some();
+    let (st, nll, iterations) = squarem(&mut run, st, accelerate, iters, opts.tol);
+    let sigma2 = Surfels { normals: &[], tangent_sigma2: st.tangent2, normal_sigma2: st.normal2 }.equivalent_sigma2();
+    Fit { pose: st.pose, latent: st.latent, sigma2, nll, iterations }
+}
+
+/// What the surfel EM moves: the pose, the latent and both variances.
+#[derive(Clone)]
+struct SurfelState {
+    pose: super::Pose,
+    latent: Vec<f64>,
+    tangent2: f64,
+    normal2: f64,
+}
+
+/// One surfel fit's inputs and reused buffers.
+struct SurfelRun<'a> {
+    level: &'a LatentLevel,
+    view: View<'a>,
+    prior: Option<&'a [f64]>,
+    support: Option<Support>,
+    opts: &'a RegisterOptions,
+    norm: &'a Normalization,
+    estep: EStep,
+    post: Posteriors,
+    /// The model at the state's latent, in its own frame.
+    y_model: Vec<P3>,
+    y_world: Vec<P3>,
+    n_world: Vec<P3>,
+    /// The view's mixing weights of the last refresh, and whether there are any.
+    weights: Vec<f64>,
+    has_weights: bool,
+    contact: Vec<usize>,
+    /// Each basis vector's component along the point's canonical normal (the
+    /// latent's normal equations need Bᵢᵀnᵢ); columns over the points.
+    basis_normal: Vec<Vec<f64>>,
+}
+
+impl<'a> SurfelRun<'a> {
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        level: &'a LatentLevel,
+        view: View<'a>,
+        x: &'a [P3],
+        prior: Option<&'a [f64]>,
+        support: Option<Support>,
+        opts: &'a RegisterOptions,
+        norm: &'a Normalization,
+    ) -> Self {
+        let (model, normals) = (&level.model, &level.normals);
+        let m = model.len();
+        let mut estep = super::new_estep(x);
+        estep.use_model_order(model.block_order(), m);
+        estep.cutoff_sigmas = CUTOFF_SIGMAS;
+        let basis_normal =
+            model.basis.iter().map(|b| b.iter().zip(normals).map(|(v, n)| dot(v, n)).collect()).collect();
+        Self {
+            level,
+            view,
+            prior,
+            support,
+            opts,
+            norm,
+            estep,
+            post: Posteriors::default(),
+            y_model: Vec::with_capacity(m),
+            y_world: Vec::with_capacity(m),
+            n_world: Vec::with_capacity(m),
+            weights: Vec::new(),
+            has_weights: false,
+            contact: Vec::new(),
+            basis_normal,
+        }
+    }
+}
+
+impl EmMap for SurfelRun<'_> {
+    type State = SurfelState;
+
+    fn load(&mut self, st: &SurfelState) {
+        self.level.model.evaluate_into(&st.latent, &mut self.y_model);
+    }
+
+    fn step(&mut self, st: &mut SurfelState, refresh_weights: bool) -> Option<f64> {
+        let (level, opts) = (self.level, self.opts);
+        let pose = &mut st.pose;
+        self.y_world.clear();
+        self.y_world.extend(self.y_model.iter().map(|y| pose.apply(y)));
+        self.n_world.clear();
+        self.n_world.extend(level.normals.iter().map(|n| -> P3 { (pose.r * Vector3::from(*n)).into() }));
+        let surfels = Surfels { normals: &self.n_world, tangent_sigma2: st.tangent2, normal_sigma2: st.normal2 };
+        if refresh_weights {
+            let sigma2 = surfels.equivalent_sigma2();
+            self.has_weights = self.view.weights(pose, &self.y_world, sigma2, &mut self.weights).is_some();
+        }
+        let w = self.has_weights.then_some(self.weights.as_slice());
+        let residuals = self.estep.run_surfels(&self.y_world, &surfels, w, opts.outlier_weight, &mut self.post);
+        let post = &self.post;
+        let nll = post.neg_log_likelihood;
         if !(post.np > 1e-9) {
-            break;
+            return None;
         }
         // ECM: the variances first (their maximum at this model), then the
         // pose and the latent with them.
-        (tangent2, normal2) = residuals.variances(post.np);
-        let (a, b) = (1.0 / tangent2, 1.0 / normal2 - 1.0 / tangent2);
+        (st.tangent2, st.normal2) = residuals.variances(post.np);
+        let (a, b) = (1.0 / st.tangent2, 1.0 / st.normal2 - 1.0 / st.tangent2);
         // The support at the precision of the view's depth (σ_n), K = weight·Np.
-        let touching = support.and_then(|sp| {
-            sp.contact(&pose, &y_model, &mut contact).map(|c| (sp, c.target, sp.weight * post.np / normal2))
+        let touching = self.support.and_then(|sp| {
+            sp.contact(pose, &self.y_model, &mut self.contact).map(|c| (sp, c.target, sp.weight * post.np / st.normal2))
         });
-        let held = touching.map(|(support, target, k)| Held { support, contact: &contact, target, k });
-        pose_steps(&mut pose, &post, &y_model, normals, (a, b), held, opts, norm);
-        if let Some(var) = prior {
+        let held = touching.map(|(support, target, k)| Held { support, contact: &self.contact, target, k });
+        pose_steps(pose, post, &self.y_model, &level.normals, (a, b), held, opts, self.norm);
+        if let Some(var) = self.prior {
             let row = touching.map(|(sp, target, k)| {
-                let (g, e) = sp.latent_row(step, &pose, &contact, target);
+                let (g, e) = sp.latent_row(&level.step, pose, &self.contact, target);
                 (g, e, k)
             });
             if let Some(l) = latent_step(
-                step,
-                &basis_normal,
-                normals,
-                &post,
-                &pose,
+                &level.step,
+                &self.basis_normal,
+                &level.normals,
+                post,
+                pose,
                 (a, b),
                 row.as_ref().map(|(g, e, k)| (g.as_slice(), *e, *k)),
                 PRIOR_SCALE * opts.latent_prior_weight,
                 var,
             ) {
-                latent = l;
+                st.latent = l;
             }
         }
-        model.evaluate_into(&latent, &mut y_model);
-        if (prev - nll).abs() <= opts.tol * nll.abs().max(1e-12) {
-            break;
-        }
-        prev = nll;
+        level.model.evaluate_into(&st.latent, &mut self.y_model);
+        Some(nll)
     }
-    let sigma2 = Surfels { normals: &[], tangent_sigma2: tangent2, normal_sigma2: normal2 }.equivalent_sigma2();
-    Fit { pose, latent, sigma2, nll, iterations: it }
+
+    fn extrapolate(
+        &self,
+        s0: &SurfelState,
+        s1: &SurfelState,
+        s2: &SurfelState,
+        max_step: f64,
+    ) -> Option<(SurfelState, f64)> {
+        let opts = self.opts;
+        let range = (opts.scale_range.0 * self.norm.scale, opts.scale_range.1 * self.norm.scale);
+        let coords = JumpCoords::new(&s0.pose, self.prior, s0.latent.len(), range);
+        let pack = |s: &SurfelState| coords.pack(&s.pose, &[s.tangent2, s.normal2], &s.latent);
+        let (th, alpha) = squarem_jump(&pack(s0), &pack(s1), &pack(s2), max_step)?;
+        let (pose, variances, latent) = coords.unpack(&th, 2);
+        Some((SurfelState { pose, latent, tangent2: variances[0], normal2: variances[1] }, alpha))
+    }
 }
 
 /// The support's term at one iteration: the model's contact points
@@ -274,4 +360,53 @@ fn latent_step(
     let sol = sol?;
     let out: Vec<f64> = (0..q).map(|j| sol[(j, 0)]).collect();
     out.iter().all(|v| v.is_finite()).then_some(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::shape::register::{view_subset, RegisterOptions};
+    use crate::shape::tests::{mug_registrar, view_of};
+    use crate::tools::{self, Category, Split};
+    use rand::SeedableRng;
+
+    #[test]
+    fn squarem_brings_the_polish_nearer_convergence_in_the_same_iterations() {
+        // From the refine's end, the plain polish's σ_n falls and its latent
+        // drifts a little further each iteration, still moving at its 10th.
+        // Against a long plain polish (300 iterations), 10 accelerated ones
+        // should end nearer than 10 plain ones. Measured, summed over the
+        // three views: 1.59 against 2.52 (the jumps' α −1.2 to −4).
+        let reg = mug_registrar();
+        let test = tools::family(Category::Mug).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap();
+        let level = &reg.deformable.polish;
+        let (mut plain_gap, mut fast_gap) = (0.0, 0.0);
+        for (k, yaw) in [0.4f64, 2.0, 4.4].iter().enumerate() {
+            let (cloud, _) = view_of(&test.mesh, *yaw, k * 3 + 1);
+            let refined = reg.register(&cloud, &RegisterOptions { polish_points: 0, ..Default::default() }).unwrap();
+            let start = Fit {
+                pose: reg.pose_of(&refined),
+                latent: refined.latent.clone(),
+                sigma2: refined.sigma2,
+                nll: f64::INFINITY,
+                iterations: 0,
+            };
+            let points: Vec<P3> = cloud.iter().map(|p| [p.x, p.y, p.z]).collect();
+            let x = view_subset(&points, 800, true, &mut rand_chacha::ChaCha8Rng::seed_from_u64(k as u64));
+            let polish = |accelerate: bool, iters: usize| {
+                let opts = RegisterOptions { accelerate, tol: 1e-12, ..Default::default() };
+                let view = View { normals: &level.normals, viewpoint: None, occlusion: None };
+                let prior = Some(reg.space.variances.as_slice());
+                em_surfels(level, view, &x, &start, prior, None, start.sigma2, &opts, iters, &reg.space.norm).latent
+            };
+            let converged = polish(false, 300);
+            let gap = |l: Vec<f64>| l.iter().zip(&converged).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
+            plain_gap += gap(polish(false, 10));
+            fast_gap += gap(polish(true, 10));
+        }
+        eprintln!(
+            "latent distance to the converged polish after 10 iterations: plain {plain_gap:.3}, SQUAREM {fast_gap:.3}"
+        );
+        assert!(fast_gap < 0.75 * plain_gap, "plain {plain_gap:.3}, SQUAREM {fast_gap:.3}");
+    }
 }
