@@ -6,8 +6,9 @@
 //! the data term is Σₘ P1ₘ (x̄ₘ − s R yₘ − t)ᵀ Λₘ (x̄ₘ − s R yₘ − t) + const
 //! (x̄ₘ = PXₘ / P1ₘ, Λₘ = I/σ_t² + (1/σ_n² − 1/σ_t²) nₘnₘᵀ), so the pose
 //! takes Gauss-Newton steps on it (a generalised EM: each step lowers the
-//! objective), and the latent its exact weighted least squares. SQUAREM
-//! drives it as it drives the refine (`em::squarem`).
+//! objective), and the latent its exact weighted least squares. It runs
+//! under the refine's driver (`em::squarem`), accelerated only when asked
+//! (`RegisterOptions::accelerate_polish`).
 
 use super::em::{add_support_term, dot_slices, squarem, squarem_jump, EmMap, Fit, JumpCoords, Support, View};
 use super::{LatentLevel, RegisterOptions, LOOSE_SCALE_PRIOR_STD};
@@ -57,9 +58,7 @@ pub(super) fn em_surfels(
     let mut run = SurfelRun::new(level, view, x, prior, support, opts, norm);
     let st = SurfelState { pose: start.pose, latent: start.latent.clone(), tangent2: sigma2, normal2: sigma2 };
     run.load(&st);
-    // SQUAREM as in the refine (`em`): σ_n falls and σ_t and the latent
-    // drift a little further each plain iteration, still moving after 10.
-    let accelerate = opts.accelerate && prior.is_some();
+    let accelerate = opts.accelerate_polish && prior.is_some();
     let (st, nll, iterations) = squarem(&mut run, st, accelerate, iters, opts.tol);
     let sigma2 = Surfels { normals: &[], tangent_sigma2: st.tangent2, normal_sigma2: st.normal2 }.equivalent_sigma2();
     Fit { pose: st.pose, latent: st.latent, sigma2, nll, iterations }
@@ -373,7 +372,8 @@ mod tests {
     #[test]
     fn squarem_brings_the_polish_nearer_convergence_in_the_same_iterations() {
         // From the refine's end, the plain polish's σ_n falls and its latent
-        // drifts a little further each iteration, still moving at its 10th.
+        // drifts a little further each iteration, still moving at its 10th
+        // (`RegisterOptions::accelerate_polish`).
         // Against a long plain polish (300 iterations), 10 accelerated ones
         // should end nearer than 10 plain ones. Measured, summed over the
         // three views: 1.59 against 2.52 (the jumps' α −1.2 to −4).
@@ -393,8 +393,8 @@ mod tests {
             };
             let points: Vec<P3> = cloud.iter().map(|p| [p.x, p.y, p.z]).collect();
             let x = view_subset(&points, 800, true, &mut rand_chacha::ChaCha8Rng::seed_from_u64(k as u64));
-            let polish = |accelerate: bool, iters: usize| {
-                let opts = RegisterOptions { accelerate, tol: 1e-12, ..Default::default() };
+            let polish = |accelerate_polish: bool, iters: usize| {
+                let opts = RegisterOptions { accelerate_polish, tol: 1e-12, ..Default::default() };
                 let view = View { normals: &level.normals, viewpoint: None, occlusion: None };
                 let prior = Some(reg.space.variances.as_slice());
                 em_surfels(level, view, &x, &start, prior, None, start.sigma2, &opts, iters, &reg.space.norm).latent
