@@ -208,7 +208,8 @@ pub struct RegisterOptions {
     /// 2.05 / 4.54 → 2.06 / 4.81 (training median 1.61 → 1.73), hammer
     /// 1.82 / 3.75 → 2.01 / 3.88 (training 1.60 → 1.82; the polish's
     /// latent prior at twice or four times its weight did not mend it: 2.02
-    /// and 1.99), mug (seed 7) 2.44 / 22.3 → 2.48 / 22.3.
+    /// and 1.99; nor an outlier weight of 0.2: 2.00, plain 1.80), mug (seed
+    /// 7) 2.44 / 22.3 → 2.48 / 22.3.
     pub accelerate_polish: bool,
     /// Subsample the view evenly over its surface (one point per voxel)
     /// instead of uniformly over its points. A depth view is dense where the
