@@ -494,6 +494,12 @@ pub(super) fn squarem<M: EmMap>(
     (st, nll, it)
 }
 
+/// The pose's scale bounds (`RegisterOptions::scale_range`, relative to
+/// the canonical size) in the normalised frame's units.
+pub(super) fn scale_bounds(opts: &RegisterOptions, norm: &Normalization) -> (f64, f64) {
+    (opts.scale_range.0 * norm.scale, opts.scale_range.1 * norm.scale)
+}
+
 /// SQUAREM's coordinates of a fit's state, made commensurate: rotation as
 /// a rotation vector from a reference state's (radians), translation over
 /// its scale, log scale, log σ of each variance, and the latent over its
@@ -616,10 +622,7 @@ impl<'a> EmRun<'a> {
     }
 
     pub(super) fn scale_range(&self) -> (f64, f64) {
-        (
-            self.inputs.opts.scale_range.0 * self.inputs.norm.scale,
-            self.inputs.opts.scale_range.1 * self.inputs.norm.scale,
-        )
+        scale_bounds(self.inputs.opts, self.inputs.norm)
     }
 }
 

@@ -10,7 +10,9 @@
 //! under the refine's driver (`em::squarem`), accelerated only when asked
 //! (`RegisterOptions::accelerate_polish`).
 
-use super::em::{add_support_term, dot_slices, squarem, squarem_jump, EmMap, Fit, JumpCoords, Support, View};
+use super::em::{
+    add_support_term, dot_slices, scale_bounds, squarem, squarem_jump, EmMap, Fit, JumpCoords, Support, View,
+};
 use super::{LatentLevel, RegisterOptions, LOOSE_SCALE_PRIOR_STD};
 use crate::shape::cpd::Normalization;
 use crate::shape::estep::{dot, EStep, Posteriors, Surfels, P3};
@@ -200,8 +202,7 @@ impl EmMap for SurfelRun<'_> {
         s2: &SurfelState,
         max_step: f64,
     ) -> Option<(SurfelState, f64)> {
-        let opts = self.opts;
-        let range = (opts.scale_range.0 * self.norm.scale, opts.scale_range.1 * self.norm.scale);
+        let range = scale_bounds(self.opts, self.norm);
         let coords = JumpCoords::new(&s0.pose, self.prior, s0.latent.len(), range);
         let pack = |s: &SurfelState| coords.pack(&s.pose, &[s.tangent2, s.normal2], &s.latent);
         let (th, alpha) = squarem_jump(&pack(s0), &pack(s1), &pack(s2), max_step)?;
@@ -238,7 +239,7 @@ fn pose_steps(
 ) {
     let std = opts.scale_prior_std.unwrap_or(LOOSE_SCALE_PRIOR_STD);
     let (s0, tau2) = (norm.scale, (std.max(1e-6) * norm.scale).powi(2));
-    let (smin, smax) = (opts.scale_range.0 * norm.scale, opts.scale_range.1 * norm.scale);
+    let (smin, smax) = scale_bounds(opts, norm);
     for _ in 0..POSE_STEPS {
         let (mut sp, mut su, mut suu, mut sq) = (0.0, Vector3::zeros(), Matrix3::zeros(), 0.0);
         let mut h_normal = M7::zeros();
