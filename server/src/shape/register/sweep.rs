@@ -90,6 +90,9 @@ impl YawSweep<'_> {
                             opts,
                             &mut weights,
                         );
+                        if shift && trace_enabled() {
+                            eprintln!("      turn {i}: nll {nll_pt:.3} violation {violation:.4}");
+                        }
                         nll_pt + FREE_SPACE_PENALTY * violation
                     })
                     .collect()
