@@ -9,7 +9,6 @@
 //! outside the tool's silhouette, or in front of a surface seen behind them.
 
 use super::estep::P3;
-use super::grid::floor;
 use nalgebra::Vector3;
 
 pub struct FreeSpace {
@@ -49,7 +48,8 @@ impl FreeSpace {
         let x = z.cross(&helper).normalize();
         let y = z.cross(&x);
         let axes = [x, y, z];
-        let uv: Vec<Option<([f64; 2], f64)>> = cloud.iter().map(|p| project(&axes, &viewpoint, p)).collect();
+        let uv: Vec<Option<([f64; 2], f64)>> =
+            cloud.iter().map(|p| project(&axes, &viewpoint, p).map(|(q, r2)| (q, r2.sqrt()))).collect();
         let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
         for (q, _) in uv.iter().flatten() {
             for d in 0..2 {
@@ -88,9 +88,10 @@ impl FreeSpace {
     }
 
     fn cell(&self, q: [f64; 2]) -> Option<usize> {
-        let i = floor((q[0] - self.origin_uv[0]) * self.inv_cell);
-        let j = floor((q[1] - self.origin_uv[1]) * self.inv_cell);
-        if i < 0.0 || j < 0.0 || i >= self.dims[0] as f64 || j >= self.dims[1] as f64 {
+        // In the image, floor is truncation: bounds first (NaN fails them too).
+        let i = (q[0] - self.origin_uv[0]) * self.inv_cell;
+        let j = (q[1] - self.origin_uv[1]) * self.inv_cell;
+        if !(i >= 0.0 && j >= 0.0 && i < self.dims[0] as f64 && j < self.dims[1] as f64) {
             return None;
         }
         Some(j as usize * self.dims[0] + i as usize)
@@ -100,8 +101,12 @@ impl FreeSpace {
     /// `tol` along its ray: `p` is hidden behind it and cannot have produced an
     /// observation (a mug's far wall behind its near one, a handle behind the body).
     pub fn hidden_behind_seen(&self, p: &P3, tol: f64) -> bool {
-        let Some((q, r)) = project(&self.axes, &self.viewpoint, p) else { return false };
-        self.cell(q).is_some_and(|c| self.min_range[c] < r - tol)
+        let Some((q, r2)) = project(&self.axes, &self.viewpoint, p) else { return false };
+        // min_range < r − tol, on squares (ranges are positive; no square root a point).
+        self.cell(q).is_some_and(|c| {
+            let near = self.min_range[c] + tol;
+            near * near < r2
+        })
     }
 
     /// Fraction of camera-facing model points that the view contradicts.
@@ -113,14 +118,15 @@ impl FreeSpace {
             if n.dot(&to_camera) <= 0.0 {
                 continue;
             }
-            let Some((q, r)) = project(&self.axes, &self.viewpoint, p) else { continue };
+            let Some((q, r2)) = project(&self.axes, &self.viewpoint, p) else { continue };
             facing += 1;
             match self.cell(q).map(|c| self.min_range[c]) {
                 // Outside the silhouette: the camera would have seen this surface.
                 None => violated += 1,
                 Some(seen) if seen.is_infinite() => violated += 1,
-                // The camera saw something farther along this ray: it looked through here.
-                Some(seen) if seen > r + self.margin => violated += 1,
+                // The camera saw something farther along this ray (seen > r +
+                // margin, on squares): it looked through here.
+                Some(seen) if seen - self.margin > 0.0 && (seen - self.margin).powi(2) > r2 => violated += 1,
                 _ => {}
             }
         }
@@ -132,11 +138,12 @@ impl FreeSpace {
     }
 }
 
+/// Image coordinates of `p` and its squared range from the viewpoint; None behind the camera.
 fn project(axes: &[Vector3<f64>; 3], vp: &Vector3<f64>, p: &P3) -> Option<([f64; 2], f64)> {
     let d = Vector3::from(*p) - vp;
     let z = axes[2].dot(&d);
     if z <= 1e-6 {
         return None;
     }
-    Some(([axes[0].dot(&d) / z, axes[1].dot(&d) / z], d.norm()))
+    Some(([axes[0].dot(&d) / z, axes[1].dot(&d) / z], d.norm_squared()))
 }
