@@ -953,6 +953,20 @@ impl Registrar {
             fit
         };
         stage.polish = ms(t_stage);
+        if trace_enabled() {
+            if let Some(fs) = free_space.as_ref() {
+                let level = &models.polish;
+                let at = |latent: &[f64]| {
+                    let y: Vec<P3> = level.model.evaluate(latent).iter().map(|y| fit.pose.apply(y)).collect();
+                    fs.violation_fraction(&y, level.normals.iter().map(|n| fit.pose.r * Vector3::from(*n)))
+                };
+                eprintln!(
+                    "   polished: free-space violation {:.4} (mean shape at the same pose {:.4})",
+                    at(&fit.latent),
+                    at(&vec![0.0; fit.latent.len()])
+                );
+            }
+        }
         let t_stage = Instant::now();
         // Inliers are counted on a uniform sample of the view: the fit's
         // subsample spreads its points evenly over space, and so takes sparse
