@@ -104,7 +104,16 @@ impl YawSweep<'_> {
         let scores = match &screened {
             Some(cheap) => {
                 let floor = cheap.iter().copied().fold(f64::INFINITY, f64::min);
-                score_turns(self.model, self.normals, true, &|i| i == 0 || cheap[i] <= floor + SWEEP_SCREEN_MARGIN)
+                let wanted = |i: usize| i == 0 || cheap[i] <= floor + SWEEP_SCREEN_MARGIN;
+                // The lead alone passed: it is the sweep's answer, and scoring it
+                // densely would not change that (a drill's or hammer's usual sweep).
+                if !(1..k).any(wanted) {
+                    if trace_enabled() {
+                        eprintln!("   yaw sweep (step {:.0}°): the screen passed the lead alone", step.to_degrees());
+                    }
+                    return (None, 0.0);
+                }
+                score_turns(self.model, self.normals, true, &wanted)
             }
             None => score_turns(self.model, self.normals, true, &|_| true),
         };
