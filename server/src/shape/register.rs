@@ -747,7 +747,12 @@ impl Registrar {
         }
         let mut scorer = new_estep(&race_x);
         scorer.use_model_order(models.polish.model.block_order(), models.polish.model.len());
-        // One raced pose: EM on the mean shape from `pose`, then its score.
+        // Scores rank raced poses: one alone, with no end-over-end check to
+        // compare it with, needs none (a drill's or hammer's usual race).
+        let flip_check = starts.lying && opts.flip_check;
+        let scoring = survivors.len() > 1 || flip_check;
+        // One raced pose: EM on the mean shape from `pose`, then its score
+        // (0 when not `scoring`).
         let race = |scorer: &mut EStep, pose: Pose, sigma2: f64| -> (Fit, f64, f64, f64) {
             // Start at the coarse fit's σ² (loosened for the finer model): re-annealing
             // from the data's spread would redo the coarse stage at full resolution.
@@ -772,6 +777,9 @@ impl Registrar {
             // against the race model's own likelihood: hammer train keypoint
             // p90 10.7 → 8.4 mm, mug unambiguous test / train p90 5.9 / 6.9 →
             // 4.7 / 5.8, drill unchanged).
+            if !scoring {
+                return (fit, f64::NAN, f64::NAN, 0.0);
+            }
             let (nll_pt, violation) = dense_score(scorer, &models.polish, &fit, viewpoint, free_space.as_ref(), opts);
             let tilt = up.map_or(0.0, |up| (1.0 - (fit.pose.r * Vector3::z()).dot(&up)) / 2.0);
             let score = nll_pt + FREE_SPACE_PENALTY * violation + opts.upright_prior * tilt;
@@ -783,15 +791,14 @@ impl Registrar {
             if trace_enabled() {
                 let q = UnitQuaternion::from_matrix(&fit.pose.r);
                 let (roll, pitch, yaw) = q.euler_angles();
-                eprintln!(
-                    "   race: rpy {:.0} {:.0} {:.0}°, nll/pt {:.3}, free-space violation {:.3}, score {:.3}",
-                    roll.to_degrees(),
-                    pitch.to_degrees(),
-                    yaw.to_degrees(),
-                    nll_pt,
-                    violation,
-                    score
-                );
+                let (roll, pitch, yaw) = (roll.to_degrees(), pitch.to_degrees(), yaw.to_degrees());
+                if scoring {
+                    eprintln!(
+                        "   race: rpy {roll:.0} {pitch:.0} {yaw:.0}°, nll/pt {nll_pt:.3}, free-space violation {violation:.3}, score {score:.3}"
+                    );
+                } else {
+                    eprintln!("   race: rpy {roll:.0} {pitch:.0} {yaw:.0}°, alone (not scored)");
+                }
             }
             raced.push((score, fit.pose.r));
             if best.as_ref().is_none_or(|b| score < b.0) {
@@ -805,7 +812,7 @@ impl Registrar {
         });
         // A tool that may lie on its side may lie either end first: race the
         // lead turned end over end too (see `RegisterOptions::flip_check`).
-        if starts.lying && opts.flip_check {
+        if flip_check {
             let end_over_end = Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0));
             let p = lead.pose;
             let r = p.r * end_over_end;
