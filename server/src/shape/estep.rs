@@ -60,6 +60,8 @@ impl Posteriors {
 /// e^{-32} relative weight, below any effect on a fit.
 pub const CUTOFF_SIGMAS: f64 = 8.0;
 
+/// Cloning keeps what was made of the data (see [`EStep::prepare_blocks`]).
+#[derive(Clone)]
 pub struct EStep {
     x: Vec<P3>,
     grid: RadiusGrid,
@@ -181,6 +183,13 @@ impl EStep {
         let nll = post.neg_log_likelihood;
         self.scratch = post;
         nll
+    }
+
+    /// Groups the data for the blocked kernels now rather than at their
+    /// first E-step, so that clones of this one (the fits of a registration
+    /// on the same points) share the work.
+    pub fn prepare_blocks(&mut self) {
+        self.surfel_buf.load_data(&self.x);
     }
 
     /// Orders the moving points of the blocked E-steps to come by `order`
@@ -453,7 +462,7 @@ enum ListState {
 /// EM moves the model a little each iteration; while no point has moved
 /// farther than the skin allows, every pair within the cutoff is still on
 /// the list, and an iteration evaluates the listed pairs without searching.
-#[derive(Default)]
+#[derive(Clone, Default)]
 struct NeighbourList {
     /// Pairs grouped by moving point: `data[starts[i]..starts[i + 1]]`.
     starts: Vec<u32>,
@@ -637,7 +646,7 @@ unsafe fn dense_rows_avx2(
 /// f32 lanes of an AVX2 register.
 const LANES: usize = 8;
 
-#[derive(Default)]
+#[derive(Clone, Default)]
 struct F32Buffers {
     x: Vec<[f32; 3]>,
     /// The data again as three columns, for the neighbour lists' indexed loads.
@@ -691,7 +700,7 @@ pub(super) struct DenseRows<'a> {
 }
 
 /// A dense kernel's own scratch, one per chunk of a split E-step.
-#[derive(Default)]
+#[derive(Clone, Default)]
 struct DenseScratch {
     row: Vec<f32>,
     acc: [Vec<f32>; 4],
@@ -917,7 +926,7 @@ const FAR_AWAY: f32 = 1e10;
 /// padded to whole vectors (padding: data index n, a spare slot, at
 /// `FAR_AWAY`), and the pairs' data coordinates copied in, so the distances
 /// load contiguously instead of through the indices.
-#[derive(Default)]
+#[derive(Clone, Default)]
 struct PaddedPairs {
     starts: Vec<u32>,
     data: Vec<u32>,

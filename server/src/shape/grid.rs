@@ -9,7 +9,7 @@
 
 use super::estep::P3;
 
-#[derive(Default)]
+#[derive(Clone, Default)]
 pub struct RadiusGrid {
     origin: P3,
     inv_cell: f64,

@@ -40,7 +40,7 @@ mod surfels;
 mod sweep;
 mod viewpoint;
 
-use em::{em, new_estep, Fit, LatentStep, Pose, Support, View, REST_POSE_COS};
+use em::{em, Fit, LatentStep, Pose, Support, View, ViewPoints, REST_POSE_COS};
 use starts::{principal_frame, side_facing, Starts, UPRIGHT_ONE_WAY, UPRIGHT_SIDE_FACING};
 
 use sweep::{sweep_axis, YawSweep};
@@ -490,7 +490,11 @@ struct Models {
     /// Canonical outward normals of each level's points (normalised frame = canonical axes).
     coarse_normals: Vec<P3>,
     race_normals: Vec<P3>,
+    /// The coarse level's candidate points, and the first of them at the
+    /// default `coarse_model_points`, kept so that its block order
+    /// (`LinearModel::block_order`) is made once, not every registration.
     coarse: LinearModel,
+    coarse_default: LinearModel,
     /// Middle resolution, for the race between the surviving hypotheses.
     race: LinearModel,
     /// The refine's level, and the densest, for the last few iterations (the polish).
@@ -523,16 +527,24 @@ impl Models {
             let model = surface.select(idx);
             LatentLevel { step: LatentStep::new(&model), model, normals: normals(idx) }
         };
-        Self {
+        let models = Self {
             fine: level(fine_idx),
             polish: level(&polish_idx),
             coarse_normals: normals(coarse_idx),
             race_normals: normals(race_idx),
             coarse: surface.select(coarse_idx),
+            coarse_default: surface
+                .select(&coarse_idx[..RegisterOptions::default().coarse_model_points.min(coarse_idx.len())]),
             race: surface.select(race_idx),
             surface,
             keypoints: model(&kp),
+        };
+        // The blocked E-steps' orders, made here (a few ms for the polish's
+        // level) rather than in the first registration.
+        for level in [&models.coarse_default, &models.race, &models.fine.model, &models.polish.model] {
+            level.block_order();
         }
+        models
     }
 }
 
@@ -641,10 +653,14 @@ impl Registrar {
         let all = drop_stray_points(&working, &mut rng);
         let fine_x = view_subset(&all, opts.fine_points, opts.even_sampling, &mut rng);
         let race_x = subsample(&fine_x, opts.race_points, &mut rng);
-        let coarse_x = subsample(&race_x, opts.coarse_points, &mut rng);
+        let coarse_x = ViewPoints::new(&subsample(&race_x, opts.coarse_points, &mut rng));
         let models = if opts.fit_latent { &self.deformable } else { &self.rigid };
         let coarse_n = opts.coarse_model_points.min(models.coarse.len());
-        let coarse_model = models.coarse.select(&(0..coarse_n).collect::<Vec<_>>());
+        let coarse_model = if coarse_n == models.coarse_default.len() {
+            std::borrow::Cow::Borrowed(&models.coarse_default)
+        } else {
+            std::borrow::Cow::Owned(models.coarse.select(&(0..coarse_n).collect::<Vec<_>>()))
+        };
         let coarse_normals = &models.coarse_normals[..coarse_n];
         let viewpoint = opts.viewpoint.map(Vector3::from);
         let up = up_direction(opts);
@@ -745,7 +761,8 @@ impl Registrar {
                 survivors.push(fit);
             }
         }
-        let mut scorer = new_estep(&race_x);
+        let race_pts = ViewPoints::new(&race_x);
+        let mut scorer = race_pts.estep();
         scorer.use_model_order(models.polish.model.block_order(), models.polish.model.len());
         // Scores rank raced poses: one alone, with no end-over-end check to
         // compare it with, needs none (a drill's or hammer's usual race).
@@ -761,7 +778,7 @@ impl Registrar {
             let fit = em(
                 &models.race,
                 View { normals: &models.race_normals, viewpoint, occlusion: None },
-                &race_x,
+                &race_pts,
                 pose,
                 vec![0.0; q],
                 None,
@@ -845,7 +862,7 @@ impl Registrar {
                     model: &models.polish.model,
                     normals: &models.polish.normals,
                     screen: Some((&models.race, &models.race_normals)),
-                    x: &race_x,
+                    x: &race_pts,
                     viewpoint,
                     free_space,
                     origin: Vector3::from(self.space.norm.forward(&[0.0; 3])),
@@ -855,7 +872,7 @@ impl Registrar {
                 let fit = em(
                     &models.race,
                     View { normals: &models.race_normals, viewpoint, occlusion: None },
-                    &race_x,
+                    &race_pts,
                     start,
                     lead.latent.clone(),
                     None,
@@ -912,7 +929,7 @@ impl Registrar {
         // 1.95 / 27.6 mm, drill 2.11 / 4.9 → 2.19 / 4.9). And only for a tool
         // resting as its category was modelled (see `REST_POSE_COS`).
         let support = Support::new(up, opts).filter(|sp| (lead.pose.r * Vector3::z()).dot(&sp.up) > REST_POSE_COS);
-        let fit_latent = |level: &LatentLevel, x: &[P3], start: &Fit, sigma2: f64, iters: usize| {
+        let fit_latent = |level: &LatentLevel, x: &ViewPoints, start: &Fit, sigma2: f64, iters: usize| {
             em(
                 &level.model,
                 View { normals: &level.normals, viewpoint, occlusion: free_space.as_ref() },
@@ -930,13 +947,13 @@ impl Registrar {
         // The refine re-anneals from the shape space's spread (see `refine_shape_sigma2`).
         let spread2 = if opts.fit_latent { self.shape_spread2 * lead.pose.s * lead.pose.s } else { 0.0 };
         let refine_sigma2 = lead.sigma2 + opts.refine_shape_sigma2.max(0.0) * spread2;
-        let fit = fit_latent(&models.fine, &fine_x, &lead, refine_sigma2, opts.fine_iters);
+        let fit = fit_latent(&models.fine, &ViewPoints::new(&fine_x), &lead, refine_sigma2, opts.fine_iters);
         iterations += fit.iterations;
         stage.refine = ms(t_stage);
         let t_stage = Instant::now();
         // Polish: the refine's fit continued on the densest model and more of the view.
         let fit = if opts.polish_points > 0 && opts.polish_iters > 0 {
-            let polish_x = view_subset(&all, opts.polish_points, opts.even_sampling, &mut rng);
+            let polish_x = ViewPoints::new(&view_subset(&all, opts.polish_points, opts.even_sampling, &mut rng));
             let polished = if opts.fit_latent && opts.surfels {
                 let level = &models.polish;
                 surfels::em_surfels(

@@ -235,6 +235,29 @@ pub(super) fn new_estep(x: &[P3]) -> EStep {
     estep
 }
 
+/// A subset of the view prepared once for the E-steps of every fit on it:
+/// [`new_estep`]'s settings and the blocked kernels' groups of nearby data
+/// points. Ordering those groups for each fit took about 2 % of a mug's
+/// registration: ten orders a fit, where four subsets are distinct.
+pub(super) struct ViewPoints(EStep);
+
+impl ViewPoints {
+    pub(super) fn new(x: &[P3]) -> Self {
+        let mut estep = new_estep(x);
+        estep.prepare_blocks();
+        Self(estep)
+    }
+
+    pub(super) fn points(&self) -> &[P3] {
+        self.0.data()
+    }
+
+    /// A fit's own E-step on these points.
+    pub(super) fn estep(&self) -> EStep {
+        self.0.clone()
+    }
+}
+
 /// The latent half of the M-step for one model. The normal equations are
 /// A ℓ = b with A = Σᵢ P1ᵢ BᵢᵀBᵢ + σ²/s² Λ⁻¹ and b = Σᵢ Bᵢᵀ rᵢ (Bᵢ the 3×q
 /// basis rows of point i, rᵢ its posterior-weighted residual in the model
@@ -392,7 +415,7 @@ fn dot_slices_body(a: &[f64], b: &[f64]) -> f64 {
 pub(super) fn em(
     model: &LinearModel,
     view: View,
-    x: &[P3],
+    x: &ViewPoints,
     pose: Pose,
     latent: Vec<f64>,
     prior: Option<(&[f64], &LatentStep)>,
@@ -405,7 +428,7 @@ pub(super) fn em(
     let mut run = EmRun::new(FitInputs { model, view, x, prior, support, opts, norm });
     let mut st = EmState { pose, latent, sigma2: 0.0 };
     run.load(&st);
-    st.sigma2 = sigma2_init.unwrap_or_else(|| initial_sigma2(x, &run.y_world));
+    st.sigma2 = sigma2_init.unwrap_or_else(|| initial_sigma2(x.points(), &run.y_world));
     let accelerate = opts.accelerate && prior.is_some();
     let (st, nll, iterations) = squarem(&mut run, st, accelerate, iters, opts.tol);
     Fit { pose: st.pose, latent: st.latent, sigma2: st.sigma2, nll, iterations }
@@ -582,7 +605,7 @@ struct EmState {
 struct FitInputs<'a> {
     model: &'a LinearModel,
     view: View<'a>,
-    x: &'a [P3],
+    x: &'a ViewPoints,
     prior: Option<(&'a [f64], &'a LatentStep)>,
     support: Option<Support>,
     opts: &'a RegisterOptions,
@@ -607,7 +630,7 @@ struct EmRun<'a> {
 impl<'a> EmRun<'a> {
     pub(super) fn new(inputs: FitInputs<'a>) -> Self {
         let m = inputs.model.len();
-        let mut estep = new_estep(inputs.x);
+        let mut estep = inputs.x.estep();
         estep.use_model_order(inputs.model.block_order(), m);
         Self {
             estep,
@@ -636,7 +659,7 @@ impl EmMap for EmRun<'_> {
     }
 
     fn step(&mut self, st: &mut EmState, refresh_weights: bool) -> Option<f64> {
-        let (x, opts, norm) = (self.inputs.x, self.inputs.opts, self.inputs.norm);
+        let (x, opts, norm) = (self.inputs.x.points(), self.inputs.opts, self.inputs.norm);
         let sigma2 = st.sigma2;
         if refresh_weights {
             self.has_weights = self.inputs.view.weights(&st.pose, &self.y_world, sigma2, &mut self.weights).is_some();

@@ -12,6 +12,7 @@
 
 use super::em::{
     add_support_term, dot_slices, scale_bounds, squarem, squarem_jump, EmMap, Fit, JumpCoords, Support, View,
+    ViewPoints,
 };
 use super::{LatentLevel, RegisterOptions, LOOSE_SCALE_PRIOR_STD};
 use crate::shape::cpd::Normalization;
@@ -48,7 +49,7 @@ const CUTOFF_SIGMAS: f64 = 4.0;
 pub(super) fn em_surfels(
     level: &LatentLevel,
     view: View,
-    x: &[P3],
+    x: &ViewPoints,
     start: &Fit,
     prior: Option<&[f64]>,
     support: Option<Support>,
@@ -103,7 +104,7 @@ impl<'a> SurfelRun<'a> {
     fn new(
         level: &'a LatentLevel,
         view: View<'a>,
-        x: &'a [P3],
+        x: &'a ViewPoints,
         prior: Option<&'a [f64]>,
         support: Option<Support>,
         opts: &'a RegisterOptions,
@@ -111,7 +112,7 @@ impl<'a> SurfelRun<'a> {
     ) -> Self {
         let (model, normals) = (&level.model, &level.normals);
         let m = model.len();
-        let mut estep = super::new_estep(x);
+        let mut estep = x.estep();
         estep.use_model_order(model.block_order(), m);
         estep.cutoff_sigmas = CUTOFF_SIGMAS;
         let basis_normal =
@@ -393,7 +394,12 @@ mod tests {
                 iterations: 0,
             };
             let points: Vec<P3> = cloud.iter().map(|p| [p.x, p.y, p.z]).collect();
-            let x = view_subset(&points, 800, true, &mut rand_chacha::ChaCha8Rng::seed_from_u64(k as u64));
+            let x = ViewPoints::new(&view_subset(
+                &points,
+                800,
+                true,
+                &mut rand_chacha::ChaCha8Rng::seed_from_u64(k as u64),
+            ));
             let polish = |accelerate_polish: bool, iters: usize| {
                 let opts = RegisterOptions { accelerate_polish, tol: 1e-12, ..Default::default() };
                 let view = View { normals: &level.normals, viewpoint: None, occlusion: None };

@@ -4,7 +4,7 @@
 //! and the middle of the turns the view cannot tell apart is taken; the
 //! arc's half width is reported (`Registration::yaw_arc`).
 
-use super::{new_estep, score_posed, trace_enabled, Fit, Pose, RegisterOptions, View, FREE_SPACE_PENALTY};
+use super::{score_posed, trace_enabled, Fit, Pose, RegisterOptions, View, ViewPoints, FREE_SPACE_PENALTY};
 use crate::shape::estep::P3;
 use crate::shape::freespace::FreeSpace;
 use crate::shape::space::LinearModel;
@@ -20,7 +20,7 @@ pub(super) struct YawSweep<'a> {
     /// each as turned (no translation re-fitted): only those it scores
     /// within [`SWEEP_SCREEN_MARGIN`] of its best are scored on `model`.
     pub(super) screen: Option<(&'a LinearModel, &'a [P3])>,
-    pub(super) x: &'a [P3],
+    pub(super) x: &'a ViewPoints,
     pub(super) viewpoint: Option<Vector3<f64>>,
     pub(super) free_space: Option<&'a FreeSpace>,
     /// The canonical frame's origin in normalised model coordinates.
@@ -39,13 +39,13 @@ impl YawSweep<'_> {
         let origin = self.origin;
         let pivot = Vector3::from(lead.pose.apply(&[origin.x, origin.y, origin.z]));
         let axis = sweep_axis(&lead.pose.r, up);
-        // Truncated sums by blocks once σ is small (`new_estep`): a turn moves
+        // Truncated sums by blocks once σ is small (`ViewPoints`): a turn moves
         // the model rigidly, so its k-d blocks stay compact and are reused from
         // turn to turn, where a neighbour list had to be rebuilt (the sweep
         // was dense before: measured, `bench_register` with a timer on the
         // sweep, mug 1.7 → 1.45 ms; eval transfer --views 12 --seed 7, all
         // three categories: every figure equal to 1e-6).
-        let mut estep = new_estep(self.x);
+        let mut estep = self.x.estep();
         let mut weights = Vec::new();
         // The lead turned by `steps` sweep steps (fractions allowed) about the pivot line.
         let turned = |steps: f64| -> Pose {
