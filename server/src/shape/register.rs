@@ -1216,10 +1216,15 @@ fn score_posed(
     opts: &RegisterOptions,
     weights: &mut Vec<f64>,
 ) -> (f64, f64) {
-    let w = view.weights(pose, y_world, sigma2, weights);
+    // The normals turned once for both (the same values each would make);
+    // without a viewpoint neither reads them.
+    let turned: Vec<Vector3<f64>> = match view.viewpoint {
+        Some(_) => view.normals.iter().map(|n| pose.r * Vector3::from(*n)).collect(),
+        None => Vec::new(),
+    };
+    let w = view.weights_turned(turned.iter().copied(), y_world, sigma2, weights);
     let nll = estep.neg_log_likelihood(y_world, w, sigma2, opts.outlier_weight);
-    let violation = free_space
-        .map_or(0.0, |fs| fs.violation_fraction(y_world, view.normals.iter().map(|n| pose.r * Vector3::from(*n))));
+    let violation = free_space.map_or(0.0, |fs| fs.violation_fraction(y_world, turned.iter().copied()));
     (nll / estep.data().len().max(1) as f64, violation)
 }
 

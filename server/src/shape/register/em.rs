@@ -171,6 +171,19 @@ impl View<'_> {
         sigma2: f64,
         out: &'w mut Vec<f64>,
     ) -> Option<&'w [f64]> {
+        self.weights_turned(self.normals.iter().map(|n| pose.r * Vector3::from(*n)), y_world, sigma2, out)
+    }
+
+    /// [`Self::weights`] with the model's normals already turned into the
+    /// cloud's frame (`normals_world`, one per point of `y_world`), where
+    /// the caller turned them for other work too.
+    pub(super) fn weights_turned<'w>(
+        &self,
+        normals_world: impl Iterator<Item = Vector3<f64>>,
+        y_world: &[P3],
+        sigma2: f64,
+        out: &'w mut Vec<f64>,
+    ) -> Option<&'w [f64]> {
         let vp = self.viewpoint?;
         if self.normals.len() != y_world.len() {
             return None;
@@ -179,9 +192,9 @@ impl View<'_> {
         let fine = self.occlusion.is_some();
         let (hidden_weight, grazing_cos) = if fine { (HIDDEN_WEIGHT_FINE, GRAZING_COS) } else { (HIDDEN_WEIGHT, 0.0) };
         out.clear();
-        out.extend(self.normals.iter().zip(y_world).map(|(n, y)| {
+        out.extend(normals_world.zip(y_world).map(|(n, y)| {
             let to_camera = vp - Vector3::from(*y);
-            let mut facing = (pose.r * Vector3::from(*n)).dot(&to_camera);
+            let mut facing = n.dot(&to_camera);
             // The coarse stage and the race (no grazing margin) skip the norm's
             // square root, the same result (measured, `VIEWPOINT=known
             // bench_register mug 3`, two alternating pairs: coarse 2.40 / 2.38

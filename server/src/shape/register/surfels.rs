@@ -154,7 +154,8 @@ impl EmMap for SurfelRun<'_> {
         let surfels = Surfels { normals: &self.n_world, tangent_sigma2: st.tangent2, normal_sigma2: st.normal2 };
         if refresh_weights {
             let sigma2 = surfels.equivalent_sigma2();
-            self.has_weights = self.view.weights(pose, &self.y_world, sigma2, &mut self.weights).is_some();
+            let normals = self.n_world.iter().map(|n| Vector3::from(*n));
+            self.has_weights = self.view.weights_turned(normals, &self.y_world, sigma2, &mut self.weights).is_some();
         }
         let w = self.has_weights.then_some(self.weights.as_slice());
         let residuals = self.estep.run_surfels(&self.y_world, &surfels, w, opts.outlier_weight, &mut self.post);
