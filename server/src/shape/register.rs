@@ -653,7 +653,7 @@ impl Registrar {
         let all = drop_stray_points(&working, &mut rng);
         let fine_x = view_subset(&all, opts.fine_points, opts.even_sampling, &mut rng);
         let race_x = subsample(&fine_x, opts.race_points, &mut rng);
-        let coarse_x = ViewPoints::new(&subsample(&race_x, opts.coarse_points, &mut rng));
+        let coarse_pts = ViewPoints::new(&subsample(&race_x, opts.coarse_points, &mut rng));
         let models = if opts.fit_latent { &self.deformable } else { &self.rigid };
         let coarse_n = opts.coarse_model_points.min(models.coarse.len());
         let coarse_model = if coarse_n == models.coarse_default.len() {
@@ -692,7 +692,7 @@ impl Registrar {
             em(
                 &coarse_model,
                 view,
-                &coarse_x,
+                &coarse_pts,
                 pose,
                 vec![0.0; 0],
                 None,
@@ -953,13 +953,13 @@ impl Registrar {
         let t_stage = Instant::now();
         // Polish: the refine's fit continued on the densest model and more of the view.
         let fit = if opts.polish_points > 0 && opts.polish_iters > 0 {
-            let polish_x = ViewPoints::new(&view_subset(&all, opts.polish_points, opts.even_sampling, &mut rng));
+            let polish_pts = ViewPoints::new(&view_subset(&all, opts.polish_points, opts.even_sampling, &mut rng));
             let polished = if opts.fit_latent && opts.surfels {
                 let level = &models.polish;
                 surfels::em_surfels(
                     level,
                     View { normals: &level.normals, viewpoint, occlusion: free_space.as_ref() },
-                    &polish_x,
+                    &polish_pts,
                     &fit,
                     prior,
                     support,
@@ -969,7 +969,7 @@ impl Registrar {
                     &self.space.norm,
                 )
             } else {
-                fit_latent(&models.polish, &polish_x, &fit, fit.sigma2, opts.polish_iters)
+                fit_latent(&models.polish, &polish_pts, &fit, fit.sigma2, opts.polish_iters)
             };
             iterations += polished.iterations;
             polished
