@@ -201,16 +201,8 @@ pub fn model_order(points: &[P3]) -> Vec<usize> {
 fn compact_blocks(p: &[P3], order: &mut [usize], block: usize) {
     const PASSES: usize = 50;
     for _ in 0..PASSES {
-        let spheres: Vec<([f64; 3], f64)> = order
-            .chunks(block)
-            .map(|b| {
-                let mut c = [0.0; 3];
-                for &i in b {
-                    (0..3).for_each(|d| c[d] += p[i][d] / b.len() as f64);
-                }
-                (c, b.iter().map(|&i| dist2(&p[i], &c)).fold(0.0, f64::max).sqrt())
-            })
-            .collect();
+        let spheres: Vec<([f64; 3], f64)> =
+            order.chunks(block).map(|b| centroid_and_radius(b.iter().map(|&i| &p[i]))).collect();
         let mut swapped = false;
         for a in 0..spheres.len() {
             for b in a + 1..spheres.len() {
@@ -241,6 +233,12 @@ fn compact_blocks(p: &[P3], order: &mut [usize], block: usize) {
 
 /// The centroid of some points and their largest distance from it.
 fn bounding_sphere<'p>(points: impl Iterator<Item = &'p P3> + Clone) -> [f32; 4] {
+    let (c, r) = centroid_and_radius(points);
+    [c[0] as f32, c[1] as f32, c[2] as f32, r as f32]
+}
+
+/// [`bounding_sphere`] in double precision.
+fn centroid_and_radius<'p>(points: impl Iterator<Item = &'p P3> + Clone) -> ([f64; 3], f64) {
     let (mut c, mut k) = ([0.0f64; 3], 0.0);
     for p in points.clone() {
         (0..3).for_each(|d| c[d] += p[d]);
@@ -248,7 +246,7 @@ fn bounding_sphere<'p>(points: impl Iterator<Item = &'p P3> + Clone) -> [f32; 4]
     }
     c = c.map(|v| v / f64::max(k, 1.0));
     let r2 = points.map(|p| dist2(p, &c)).fold(0.0, f64::max);
-    [c[0] as f32, c[1] as f32, c[2] as f32, r2.sqrt() as f32]
+    (c, r2.sqrt())
 }
 
 /// The points' indices in leaves of `leaf` nearby points: a k-d split,
