@@ -68,21 +68,42 @@ const RESIDUAL_SUMS_FLOOR: f32 = 9.094947e-13; // 2^-40
 /// residual on them would be a subnormal number.
 const NORMAL_FLUSH: f64 = 1e-6;
 
-/// Moving points a block: one AVX-512 vector, two AVX2 ones.
-const BLOCK: usize = 16;
+/// Moving points a block: one AVX2 vector, half an AVX-512 one (whose
+/// vectors hold a block against two data points). Blocks of 16 were twice
+/// as wide (mean bounding radius 15 against 10.5 mm on the mug's polish
+/// level), and a block is evaluated wherever its sphere comes within the
+/// cutoff of a group's: with 8, the polish's vectors a mug E-step fall by
+/// about a quarter (drill 29 %, hammer 17 %), at twice the block loads and
+/// sum updates a vector. Measured against 16, the builds run in turn:
+/// `bench_estep` surfels 800 × 800, median of six runs' fastest, AVX-512
+/// 87.5 → 76.5 µs, AVX2 171.4 → 162.3, portable 362.5 → 319.6;
+/// `VIEWPOINT=known bench_register`, median of 30 runs' mean of each view's
+/// fastest fit, mug 6.18 → 5.81 ms, drill 5.12 → 4.93, hammer 5.17 → 5.17
+/// (10 runs: AVX2 mug 8.96 → 8.14, portable 14.95 → 13.76); keypoints
+/// within 0.01 mm (`eval transfer --views 12`, seeds 7 / 11 / 23).
+const BLOCK: usize = 8;
 type Lanes = [f32; BLOCK];
+/// A block's lanes twice over: its points (`Block`), and its posterior sums,
+/// into whose halves the AVX-512 and portable kernels add their two data
+/// points' shares (the AVX2 kernel into the first); `store` adds the halves.
+type Wide = [f32; 2 * BLOCK];
 
 /// Data points a group: near one another (a leaf of `spatial_order`), they
-/// share one test of which blocks are in reach, and the AVX-512 kernel
-/// loads each block once for the group and updates its sums once.
+/// share one test of which blocks are in reach, and the kernels load each
+/// block once for the group and update its sums once.
 const GROUP: usize = 4;
 
-/// One block of moving points, structure of arrays.
+/// One block of moving points, structure of arrays, each lane held twice
+/// (on both halves of a `Wide`): the AVX-512 and portable kernels set a
+/// block against two data points at once and read it whole, the AVX2 kernel
+/// reads the first half. Stored twice rather than broadcast at each use:
+/// measured (`bench_estep`, surfels 800 × 800, fastest of six runs) AVX-512
+/// 84.4 → 75.5 µs, portable 368.8 → 317.2 µs, AVX2 the same.
 #[derive(Clone, Copy, Default)]
 struct Block {
-    y: [Lanes; 3],
-    n: [Lanes; 3],
-    pi: Lanes,
+    y: [Wide; 3],
+    n: [Wide; 3],
+    pi: Wide,
 }
 
 /// The moving points of a surfel E-step in blocks of nearby points, each
@@ -100,11 +121,11 @@ pub(super) struct SurfelBuffers {
     /// Bounding spheres of the blocks as columns (centre x, y, z and
     /// radius), for the kernel's vector test of which blocks a group reaches.
     spheres: [Vec<f32>; 4],
-    /// The affinities of a group's rows, block k's at k·GROUP.. (the
-    /// portable kernel uses the first row of each block only).
+    /// The affinities of a group's rows, block k's at k·GROUP.. (two rows
+    /// make one sixteen-lane vector of the AVX-512 and portable kernels).
     row: Vec<Lanes>,
     /// Per block: the P1 and PX sums.
-    acc: Vec<[Lanes; 4]>,
+    acc: Vec<[Wide; 4]>,
     live: Vec<u32>,
     /// The data points in `spatial_order`, their indices in the caller's
     /// order, and the bounding sphere (centre, radius) of each group of
@@ -136,10 +157,13 @@ impl SurfelBuffers {
                 let (k, w) = if i == usize::MAX { (first, 0.0) } else { (i, weights.map_or(1.0, |w| w[i])) };
                 for d in 0..3 {
                     block.y[d][l] = y[k][d] as f32;
+                    block.y[d][l + BLOCK] = y[k][d] as f32;
                     let nd = normals.map_or(0.0, |n| n[k][d]);
                     block.n[d][l] = if nd.abs() < NORMAL_FLUSH { 0.0 } else { nd as f32 };
+                    block.n[d][l + BLOCK] = block.n[d][l];
                 }
                 block.pi[l] = w as f32;
+                block.pi[l + BLOCK] = w as f32;
             }
             let sphere = bounding_sphere(slots.iter().map(|&i| &y[if i == usize::MAX { first } else { i }]));
             for (col, v) in self.spheres.iter_mut().zip(sphere) {
@@ -148,9 +172,9 @@ impl SurfelBuffers {
         }
         self.row.resize(nb * GROUP, [0.0; BLOCK]);
         self.acc.clear();
-        self.acc.resize(nb, [[0.0; BLOCK]; 4]);
-        // Whole vectors of block indices are stored past the live ones.
-        self.live.resize(nb.next_multiple_of(BLOCK) + BLOCK, 0);
+        self.acc.resize(nb, [[0.0; 2 * BLOCK]; 4]);
+        // Whole vectors (of 16) of block indices are stored past the live ones.
+        self.live.resize(nb.next_multiple_of(16) + 16, 0);
     }
 
     /// The data in groups of nearby points (once: the data are fixed).
@@ -175,8 +199,9 @@ impl SurfelBuffers {
         for (slots, a) in self.order.chunks_exact(BLOCK).zip(&self.acc) {
             for (l, &i) in slots.iter().enumerate() {
                 if i != usize::MAX {
-                    out.p1[i] = a[0][l] as f64;
-                    out.px[i] = [a[1][l] as f64, a[2][l] as f64, a[3][l] as f64];
+                    let sum = |c: &Wide| (c[l] + c[l + BLOCK]) as f64;
+                    out.p1[i] = sum(&a[0]);
+                    out.px[i] = [sum(&a[1]), sum(&a[2]), sum(&a[3])];
                 }
             }
         }
@@ -392,18 +417,12 @@ fn blocked_surfels<const ROUND: bool>(simd: Simd, b: &mut SurfelBuffers, k: Fact
         // SAFETY: `simd` comes from `Simd::detect`: the CPU runs what these are compiled for.
         match simd {
             Simd::Avx512 => return unsafe { avx512::blocked_surfels::<ROUND>(b, k, rows) },
-            Simd::Avx2 => return unsafe { blocked_surfels_avx2::<ROUND>(b, k, rows) },
+            Simd::Avx2 => return unsafe { avx2::blocked_surfels::<ROUND>(b, k, rows) },
             Simd::Portable => {}
         }
     }
     let _ = simd;
     blocked_surfels_rows::<false, ROUND>(b, k, rows)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn blocked_surfels_avx2<const ROUND: bool>(b: &mut SurfelBuffers, k: Factors, rows: &mut Rows) {
-    blocked_surfels_rows::<true, ROUND>(b, k, rows)
 }
 
 /// The kernel's constants: the exponent factors (`exponents`) and the outlier term.
@@ -454,70 +473,250 @@ fn live_blocks<const FMA: bool>(spheres: &[Vec<f32>; 4], g: &[f32; 4], reach: f3
     count
 }
 
-/// Data point by data point (the blocks within reach tested once a group):
-/// the affinities w·2^{kt·|r|² + kd·(n·r)²} with the row's sums of
-/// affinity, affinity·(n·r)² and affinity·|r|², then the posteriors into
-/// the blocks' P1 and PX. Written over fixed-size lanes so that every loop
-/// vectorises.
+/// Two data points at a time (the blocks within reach tested once a group),
+/// on sixteen lanes: a block's eight points on each half, as the AVX-512
+/// kernel lays them out (over eight lanes LLVM unrolled the loops whole and
+/// left them scalar: the AVX2 path 3-4 times slower). The affinities
+/// w·2^{kt·|r|² + kd·(n·r)²} with the rows' sums of affinity,
+/// affinity·(n·r)² and affinity·|r|², then the posteriors into the blocks'
+/// P1 and PX. Written over fixed-size lanes so that every loop vectorises.
 #[inline(always)]
 fn blocked_surfels_rows<const FMA: bool, const ROUND: bool>(b: &mut SurfelBuffers, k: Factors, rows: &mut Rows) {
+    const W: usize = 2 * BLOCK;
+    const PAIRS: usize = GROUP / 2;
     let SurfelBuffers { blocks, spheres, row, acc, live, x, x_index, groups, reach, .. } = b;
     let Factors { kt, kd, .. } = k;
-    for ((xs, js), (g, &reach)) in x.chunks(GROUP).zip(x_index.chunks(GROUP)).zip(groups.iter().zip(reach.iter())) {
+    for ((xg, jg), (g, &reach)) in x.chunks(GROUP).zip(x_index.chunks(GROUP)).zip(groups.iter().zip(reach.iter())) {
         let count = live_blocks::<FMA>(spheres, g, reach, live);
         let live = &live[..count];
-        for (xn, &j) in xs.iter().zip(js) {
-            let (mut part, mut part_n, mut part_r) = ([0.0f32; BLOCK], [0.0f32; BLOCK], [0.0f32; BLOCK]);
-            for &k in live {
-                let (bk, rk) = (&blocks[k as usize], &mut row[k as usize * GROUP]);
-                for l in 0..BLOCK {
-                    let (dx, dy, dz) = (xn[0] - bk.y[0][l], xn[1] - bk.y[1][l], xn[2] - bk.y[2][l]);
+        // A last group of fewer points repeats its last point in the
+        // missing rows, which are not closed and add nothing to the sums.
+        let mut xs = [xg[xg.len() - 1]; GROUP];
+        xs[..xg.len()].copy_from_slice(xg);
+        // Pair q's coordinates: point 2q on the lower half, 2q + 1 on the upper.
+        let xw: [[Wide; 3]; PAIRS] =
+            std::array::from_fn(|q| std::array::from_fn(|d| std::array::from_fn(|l| xs[2 * q + l / BLOCK][d])));
+        let mut part = [[[0.0f32; W]; 3]; PAIRS];
+        for &k in live {
+            let bk = &blocks[k as usize];
+            let (y, n, pi) = (&bk.y, &bk.n, &bk.pi);
+            let rk = row[k as usize * GROUP..(k as usize + 1) * GROUP].as_flattened_mut();
+            for (q, (out, [ps, pn, pr])) in rk.chunks_exact_mut(W).zip(part.iter_mut()).enumerate() {
+                let xq = &xw[q];
+                for l in 0..W {
+                    let (dx, dy, dz) = (xq[0][l] - y[0][l], xq[1][l] - y[1][l], xq[2][l] - y[2][l]);
                     let r2 = madd::<FMA>(dx, dx, madd::<FMA>(dy, dy, dz * dz));
                     if ROUND {
-                        let e = bk.pi[l] * exp2_neg_f32::<FMA>(kt * r2);
-                        rk[l] = e;
-                        part[l] += e;
+                        let e = pi[l] * exp2_neg_f32::<FMA>(kt * r2);
+                        out[l] = e;
+                        ps[l] += e;
                         continue;
                     }
-                    let an = madd::<FMA>(bk.n[0][l], dx, madd::<FMA>(bk.n[1][l], dy, bk.n[2][l] * dz));
+                    let an = madd::<FMA>(n[0][l], dx, madd::<FMA>(n[1][l], dy, n[2][l] * dz));
                     let an2 = an * an;
-                    let e = bk.pi[l] * exp2_neg_f32::<FMA>(madd::<FMA>(kd, an2, kt * r2));
-                    rk[l] = e;
-                    part[l] += e;
+                    let e = pi[l] * exp2_neg_f32::<FMA>(madd::<FMA>(kd, an2, kt * r2));
+                    out[l] = e;
+                    ps[l] += e;
                     // The variances' sums leave out the faintest pairs: their
                     // affinity times a small squared residual would land among
                     // f32's subnormals.
                     let g = if e < RESIDUAL_SUMS_FLOOR { 0.0 } else { e };
-                    part_n[l] = madd::<FMA>(g, an2, part_n[l]);
-                    part_r[l] = madd::<FMA>(g, r2, part_r[l]);
+                    pn[l] = madd::<FMA>(g, an2, pn[l]);
+                    pr[l] = madd::<FMA>(g, r2, pr[l]);
                 }
             }
-            let wide = |v: &Lanes| v.iter().map(|&v| v as f64).sum::<f64>();
-            let inv = rows.close(j, [wide(&part), wide(&part_n), wide(&part_r)]) as f32;
-            for &k in live {
-                let (rk, ak) = (&row[k as usize * GROUP], &mut acc[k as usize]);
-                for l in 0..BLOCK {
-                    let p = rk[l] * inv;
+        }
+        // Each row's inverse total on its half; 0 for the rows a last group lacks.
+        let mut inv = [[0.0f32; W]; PAIRS];
+        for (q, (sums, inv)) in part.iter().zip(inv.iter_mut()).enumerate() {
+            for h in 0..2 {
+                let Some(&j) = jg.get(2 * q + h) else { continue };
+                let half = |v: &Wide| v[h * BLOCK..(h + 1) * BLOCK].iter().map(|&v| v as f64).sum::<f64>();
+                let i = rows.close(j, [half(&sums[0]), half(&sums[1]), half(&sums[2])]) as f32;
+                inv[h * BLOCK..(h + 1) * BLOCK].fill(i);
+            }
+        }
+        for &k in live {
+            let rk = row[k as usize * GROUP..(k as usize + 1) * GROUP].as_flattened();
+            let ak = &mut acc[k as usize];
+            for (q, e) in rk.chunks_exact(W).enumerate() {
+                for l in 0..W {
+                    let p = e[l] * inv[q][l];
                     ak[0][l] += p;
-                    ak[1][l] = madd::<FMA>(p, xn[0], ak[1][l]);
-                    ak[2][l] = madd::<FMA>(p, xn[1], ak[2][l]);
-                    ak[3][l] = madd::<FMA>(p, xn[2], ak[3][l]);
+                    ak[1][l] = madd::<FMA>(p, xw[q][0][l], ak[1][l]);
+                    ak[2][l] = madd::<FMA>(p, xw[q][1][l], ak[2][l]);
+                    ak[3][l] = madd::<FMA>(p, xw[q][2][l], ak[3][l]);
                 }
             }
         }
     }
 }
 
-/// The same sums in AVX-512 intrinsics, a group's four rows at a time: each
-/// block's points, normals and sums are loaded once for the four. Written by
-/// hand for the reason `estep::avx512`'s kernels are: LLVM kept the
-/// portable kernel's row sums in memory (a store-to-load chain a pair) and
-/// its compaction scalar.
+/// The same sums in AVX2 intrinsics, a block to a vector, a group's four
+/// rows at a time: each block's points, normals and sums are loaded once for
+/// the four. By hand because over eight lanes LLVM unrolled the portable
+/// kernel's loops whole and left them scalar (the AVX2 path 3-4 times
+/// slower than with blocks of 16).
 #[cfg(target_arch = "x86_64")]
-mod avx512 {
-    use super::super::avx512::{lane_sum_f64, weighted_exp2_neg_f32x16};
+mod avx2 {
+    use super::super::exp2_neg_f32x8;
     use super::{Factors, Rows, SurfelBuffers, BLOCK, GROUP, RESIDUAL_SUMS_FLOOR};
     use std::arch::x86_64::*;
+
+    const _: () = assert!(BLOCK == 8);
+
+    /// # Safety
+    /// The CPU must have AVX2 and FMA.
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn blocked_surfels<const ROUND: bool>(b: &mut SurfelBuffers, k: Factors, rows: &mut Rows) {
+        let SurfelBuffers { blocks, spheres, row, acc, live, x, x_index, groups, reach, .. } = b;
+        let nb = blocks.len();
+        assert!(row.len() >= nb * GROUP && acc.len() == nb && live.len() >= nb);
+        assert!(spheres.iter().all(|c| c.len() == nb) && x.len() == x_index.len() && reach.len() == groups.len());
+        let f =
+            Consts { kt: _mm256_set1_ps(k.kt), kd: _mm256_set1_ps(k.kd), floor: _mm256_set1_ps(RESIDUAL_SUMS_FLOOR) };
+        for (((xg, jg), g), &r) in x.chunks(GROUP).zip(x_index.chunks(GROUP)).zip(groups.iter()).zip(reach.iter()) {
+            let count = super::live_blocks::<true>(spheres, g, r, live);
+            // A last group of fewer points repeats its last point in the
+            // missing rows, which are not closed and add nothing to the sums.
+            let mut xs = [xg[xg.len() - 1]; GROUP];
+            xs[..xg.len()].copy_from_slice(xg);
+            // SAFETY: `live` holds block indices below nb; the buffers' lengths are asserted above.
+            unsafe { group::<ROUND>(blocks, row, acc, &live[..count], &xs, jg, &f, rows) };
+        }
+    }
+
+    struct Consts {
+        kt: __m256,
+        kd: __m256,
+        floor: __m256,
+    }
+
+    /// A vector's lanes summed in double precision, in lane order (as the portable kernel).
+    #[target_feature(enable = "avx2")]
+    fn lane_sum_f64(v: __m256) -> f64 {
+        let mut l = [0.0f32; BLOCK];
+        // SAFETY: `l` holds eight lanes.
+        unsafe { _mm256_storeu_ps(l.as_mut_ptr(), v) };
+        l.iter().map(|&v| v as f64).sum()
+    }
+
+    /// The rows of the group's data points `xs` (the caller's indices `js`,
+    /// fewer than `GROUP` in a last group) over the blocks `live`.
+    ///
+    /// # Safety
+    /// `live` holds indices of `blocks`, `acc` is as long as `blocks` and `row` GROUP times longer.
+    #[target_feature(enable = "avx2,fma")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn group<const ROUND: bool>(
+        blocks: &[super::Block],
+        row: &mut [super::Lanes],
+        acc: &mut [[super::Wide; 4]],
+        live: &[u32],
+        xs: &[[f32; 3]; GROUP],
+        js: &[usize],
+        f: &Consts,
+        rows: &mut Rows,
+    ) {
+        let zero = _mm256_setzero_ps();
+        let mut xv = [[zero; 3]; GROUP];
+        for b in 0..GROUP {
+            for i in 0..3 {
+                xv[b][i] = _mm256_set1_ps(xs[b][i]);
+            }
+        }
+        let mut part = [[zero; 3]; GROUP];
+        let row = row.as_mut_ptr();
+        for &k in live {
+            let k = k as usize;
+            // SAFETY: k < blocks.len() (the caller's contract).
+            let bk = unsafe { blocks.get_unchecked(k) };
+            let (mut y, mut n) = ([zero; 3], [zero; 3]);
+            for i in 0..3 {
+                // SAFETY: each column holds eight lanes.
+                y[i] = unsafe { _mm256_loadu_ps(bk.y[i].as_ptr()) };
+                if !ROUND {
+                    // SAFETY: as above.
+                    n[i] = unsafe { _mm256_loadu_ps(bk.n[i].as_ptr()) };
+                }
+            }
+            // SAFETY: as above.
+            let pi = unsafe { _mm256_loadu_ps(bk.pi.as_ptr()) };
+            for b in 0..GROUP {
+                let d = [_mm256_sub_ps(xv[b][0], y[0]), _mm256_sub_ps(xv[b][1], y[1]), _mm256_sub_ps(xv[b][2], y[2])];
+                let r2 = _mm256_fmadd_ps(d[0], d[0], _mm256_fmadd_ps(d[1], d[1], _mm256_mul_ps(d[2], d[2])));
+                // SAFETY: k·GROUP + b < row.len().
+                let out = unsafe { row.add(k * GROUP + b).cast::<f32>() };
+                if ROUND {
+                    // SAFETY: the CPU has AVX2 and FMA (this function's features).
+                    let e = _mm256_mul_ps(pi, unsafe { exp2_neg_f32x8(_mm256_mul_ps(f.kt, r2)) });
+                    // SAFETY: as above.
+                    unsafe { _mm256_storeu_ps(out, e) };
+                    part[b][0] = _mm256_add_ps(part[b][0], e);
+                    continue;
+                }
+                let an = _mm256_fmadd_ps(n[0], d[0], _mm256_fmadd_ps(n[1], d[1], _mm256_mul_ps(n[2], d[2])));
+                let an2 = _mm256_mul_ps(an, an);
+                let t = _mm256_fmadd_ps(f.kd, an2, _mm256_mul_ps(f.kt, r2));
+                // SAFETY: as above.
+                let e = _mm256_mul_ps(pi, unsafe { exp2_neg_f32x8(t) });
+                // SAFETY: as above.
+                unsafe { _mm256_storeu_ps(out, e) };
+                part[b][0] = _mm256_add_ps(part[b][0], e);
+                // As the portable kernel: the faintest pairs stay out of the variances' sums.
+                let g = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(e, f.floor), e);
+                part[b][1] = _mm256_fmadd_ps(g, an2, part[b][1]);
+                part[b][2] = _mm256_fmadd_ps(g, r2, part[b][2]);
+            }
+        }
+        let mut inv = [zero; GROUP];
+        for (b, &j) in js.iter().enumerate() {
+            let sums = [lane_sum_f64(part[b][0]), lane_sum_f64(part[b][1]), lane_sum_f64(part[b][2])];
+            inv[b] = _mm256_set1_ps(rows.close(j, sums) as f32);
+        }
+        for &k in live {
+            let k = k as usize;
+            // SAFETY: k < acc.len().
+            let ak = unsafe { acc.get_unchecked_mut(k) };
+            let mut a = [zero; 4];
+            for (v, c) in a.iter_mut().zip(ak.iter()) {
+                // SAFETY: each sum holds sixteen lanes; these sums live on the first eight.
+                *v = unsafe { _mm256_loadu_ps(c.as_ptr()) };
+            }
+            for b in 0..GROUP {
+                // SAFETY: as in the first pass.
+                let p = _mm256_mul_ps(unsafe { _mm256_loadu_ps(row.add(k * GROUP + b).cast()) }, inv[b]);
+                a[0] = _mm256_add_ps(a[0], p);
+                a[1] = _mm256_fmadd_ps(p, xv[b][0], a[1]);
+                a[2] = _mm256_fmadd_ps(p, xv[b][1], a[2]);
+                a[3] = _mm256_fmadd_ps(p, xv[b][2], a[3]);
+            }
+            for (c, v) in ak.iter_mut().zip(a) {
+                // SAFETY: as above.
+                unsafe { _mm256_storeu_ps(c.as_mut_ptr(), v) };
+            }
+        }
+    }
+}
+
+/// The same sums in AVX-512 intrinsics, a group's four rows at a time, two
+/// to a vector (a block's eight points on each half): each block's points,
+/// normals and sums are loaded once for the four. Written by hand for the
+/// reason `estep::avx512`'s kernels are: LLVM kept the portable kernel's row
+/// sums in memory (a store-to-load chain a pair) and its compaction scalar.
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    use super::super::avx512::weighted_exp2_neg_f32x16;
+    use super::{Factors, Rows, SurfelBuffers, BLOCK, GROUP, RESIDUAL_SUMS_FLOOR};
+    use std::arch::x86_64::*;
+
+    /// Lanes of an AVX-512 vector of f32.
+    const WIDTH: usize = 16;
+    /// Data points a vector: one on each half.
+    const PAIR: usize = WIDTH / BLOCK;
+    const _: () = assert!(PAIR == 2 && GROUP.is_multiple_of(PAIR));
+    /// The upper half's lanes.
+    const UPPER: __mmask16 = 0xFF00;
 
     /// # Safety
     /// The CPU must have AVX-512F.
@@ -525,25 +724,18 @@ mod avx512 {
     pub(super) unsafe fn blocked_surfels<const ROUND: bool>(b: &mut SurfelBuffers, k: Factors, rows: &mut Rows) {
         let SurfelBuffers { blocks, spheres, row, acc, live, x, x_index, groups, reach, .. } = b;
         let nb = blocks.len();
-        assert!(row.len() >= nb * GROUP && acc.len() == nb && live.len() >= nb.next_multiple_of(BLOCK) + BLOCK);
+        assert!(row.len() >= nb * GROUP && acc.len() == nb && live.len() >= nb.next_multiple_of(WIDTH) + WIDTH);
         assert!(spheres.iter().all(|c| c.len() == nb) && x.len() == x_index.len() && reach.len() == groups.len());
         let f =
             Consts { kt: _mm512_set1_ps(k.kt), kd: _mm512_set1_ps(k.kd), floor: _mm512_set1_ps(RESIDUAL_SUMS_FLOOR) };
-        let (mut xs, mut js) = (x.chunks_exact(GROUP), x_index.chunks_exact(GROUP));
-        for ((g, &r), (xg, jg)) in groups.iter().zip(reach.iter()).zip(xs.by_ref().zip(js.by_ref())) {
+        for (((xg, jg), g), &r) in x.chunks(GROUP).zip(x_index.chunks(GROUP)).zip(groups.iter()).zip(reach.iter()) {
             let count = live_blocks(spheres, g, r, live);
+            // A last group of fewer points repeats its last point in the
+            // missing rows, which are not closed and add nothing to the sums.
+            let mut xs = [xg[xg.len() - 1]; GROUP];
+            xs[..xg.len()].copy_from_slice(xg);
             // SAFETY: `live` holds block indices below nb; the buffers' lengths are asserted above.
-            unsafe {
-                group::<GROUP, ROUND>(blocks, row, acc, &live[..count], xg.try_into().expect("a group"), jg, &f, rows)
-            };
-        }
-        // A last group of fewer points, row by row.
-        if let (Some(g), Some(&r)) = (groups.get(x.len() / GROUP), reach.get(x.len() / GROUP)) {
-            let count = live_blocks(spheres, g, r, live);
-            for (xn, j) in xs.remainder().iter().zip(js.remainder().chunks(1)) {
-                // SAFETY: as above.
-                unsafe { group::<1, ROUND>(blocks, row, acc, &live[..count], &[*xn], j, &f, rows) };
-            }
+            unsafe { group::<ROUND>(blocks, row, acc, &live[..count], &xs, jg, &f, rows) };
         }
     }
 
@@ -563,8 +755,8 @@ mod avx512 {
         let reach = _mm512_set1_ps(reach);
         let lanes = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
         let mut count = 0;
-        for o in (0..nb).step_by(BLOCK) {
-            let tail: __mmask16 = if nb - o >= BLOCK { 0xFFFF } else { (1u16 << (nb - o)) - 1 };
+        for o in (0..nb).step_by(WIDTH) {
+            let tail: __mmask16 = if nb - o >= WIDTH { 0xFFFF } else { (1u16 << (nb - o)) - 1 };
             // SAFETY: the mask covers only lanes below nb, the columns' length.
             let [cx, cy, cz, r] = unsafe {
                 [
@@ -586,30 +778,48 @@ mod avx512 {
         count
     }
 
-    /// The rows of `B` data points `xs` (caller's indices `js`) over the blocks `live`.
+    /// The two halves' lane sums in double precision, each in lane order.
+    #[target_feature(enable = "avx512f")]
+    fn half_sums_f64(v: __m512) -> [f64; 2] {
+        let mut l = [0.0f32; WIDTH];
+        // SAFETY: `l` holds sixteen lanes.
+        unsafe { _mm512_storeu_ps(l.as_mut_ptr(), v) };
+        let (mut lo, mut hi) = (0.0, 0.0);
+        for i in 0..BLOCK {
+            lo += l[i] as f64;
+            hi += l[i + BLOCK] as f64;
+        }
+        [lo, hi]
+    }
+
+    /// The rows of the group's data points `xs` (the caller's indices `js`,
+    /// fewer than `GROUP` in a last group) over the blocks `live`.
     ///
     /// # Safety
     /// `live` holds indices of `blocks`, `acc` is as long as `blocks` and `row` GROUP times longer.
     #[target_feature(enable = "avx512f")]
     #[allow(clippy::too_many_arguments)]
-    unsafe fn group<const B: usize, const ROUND: bool>(
+    unsafe fn group<const ROUND: bool>(
         blocks: &[super::Block],
         row: &mut [super::Lanes],
-        acc: &mut [[super::Lanes; 4]],
+        acc: &mut [[super::Wide; 4]],
         live: &[u32],
-        xs: &[[f32; 3]; B],
+        xs: &[[f32; 3]; GROUP],
         js: &[usize],
         f: &Consts,
         rows: &mut Rows,
     ) {
+        const PAIRS: usize = GROUP / PAIR;
         let zero = _mm512_setzero_ps();
-        let mut xv = [[zero; 3]; B];
-        for b in 0..B {
+        // Pair q's data points: 2q on the lower half, 2q + 1 on the upper.
+        let mut xv = [[zero; 3]; PAIRS];
+        for q in 0..PAIRS {
             for i in 0..3 {
-                xv[b][i] = _mm512_set1_ps(xs[b][i]);
+                let (lo, hi) = (_mm512_set1_ps(xs[2 * q][i]), _mm512_set1_ps(xs[2 * q + 1][i]));
+                xv[q][i] = _mm512_mask_blend_ps(UPPER, lo, hi);
             }
         }
-        let mut part = [[zero; 3]; B];
+        let mut part = [[zero; 3]; PAIRS];
         let row = row.as_mut_ptr();
         for &k in live {
             let k = k as usize;
@@ -617,7 +827,7 @@ mod avx512 {
             let bk = unsafe { blocks.get_unchecked(k) };
             let (mut y, mut n) = ([zero; 3], [zero; 3]);
             for i in 0..3 {
-                // SAFETY: each column holds sixteen lanes.
+                // SAFETY: each column holds eight lanes.
                 y[i] = unsafe { _mm512_loadu_ps(bk.y[i].as_ptr()) };
                 if !ROUND {
                     // SAFETY: as above.
@@ -626,34 +836,42 @@ mod avx512 {
             }
             // SAFETY: as above.
             let pi = unsafe { _mm512_loadu_ps(bk.pi.as_ptr()) };
-            for b in 0..B {
-                let d = [_mm512_sub_ps(xv[b][0], y[0]), _mm512_sub_ps(xv[b][1], y[1]), _mm512_sub_ps(xv[b][2], y[2])];
+            for q in 0..PAIRS {
+                let d = [_mm512_sub_ps(xv[q][0], y[0]), _mm512_sub_ps(xv[q][1], y[1]), _mm512_sub_ps(xv[q][2], y[2])];
                 let r2 = _mm512_fmadd_ps(d[0], d[0], _mm512_fmadd_ps(d[1], d[1], _mm512_mul_ps(d[2], d[2])));
+                // Rows k·GROUP + 2q and + 2q + 1: sixteen lanes in a row.
+                // SAFETY: k·GROUP + 2q + 1 < row.len().
+                let out = unsafe { row.add(k * GROUP + PAIR * q).cast::<f32>() };
                 if ROUND {
                     let e = weighted_exp2_neg_f32x16(pi, _mm512_mul_ps(f.kt, r2));
-                    // SAFETY: k·GROUP + b < row.len().
-                    unsafe { _mm512_storeu_ps(row.add(k * GROUP + b).cast(), e) };
-                    part[b][0] = _mm512_add_ps(part[b][0], e);
+                    // SAFETY: as above.
+                    unsafe { _mm512_storeu_ps(out, e) };
+                    part[q][0] = _mm512_add_ps(part[q][0], e);
                     continue;
                 }
                 let an = _mm512_fmadd_ps(n[0], d[0], _mm512_fmadd_ps(n[1], d[1], _mm512_mul_ps(n[2], d[2])));
                 let an2 = _mm512_mul_ps(an, an);
                 let e = weighted_exp2_neg_f32x16(pi, _mm512_fmadd_ps(f.kd, an2, _mm512_mul_ps(f.kt, r2)));
-                // SAFETY: k·GROUP + b < row.len().
-                unsafe { _mm512_storeu_ps(row.add(k * GROUP + b).cast(), e) };
-                part[b][0] = _mm512_add_ps(part[b][0], e);
+                // SAFETY: as above.
+                unsafe { _mm512_storeu_ps(out, e) };
+                part[q][0] = _mm512_add_ps(part[q][0], e);
                 // As the portable kernel: the faintest pairs stay out of the variances' sums.
                 let keep = _mm512_cmp_ps_mask::<_CMP_GE_OQ>(e, f.floor);
-                part[b][1] = _mm512_mask3_fmadd_ps(e, an2, part[b][1], keep);
-                part[b][2] = _mm512_mask3_fmadd_ps(e, r2, part[b][2], keep);
+                part[q][1] = _mm512_mask3_fmadd_ps(e, an2, part[q][1], keep);
+                part[q][2] = _mm512_mask3_fmadd_ps(e, r2, part[q][2], keep);
             }
         }
-        let mut inv = [zero; B];
-        for b in 0..B {
-            // Not `_mm512_reduce_add_ps`: its order of additions is LLVM's
-            // to choose, and then each build may round differently.
-            let sums = [lane_sum_f64(part[b][0]), lane_sum_f64(part[b][1]), lane_sum_f64(part[b][2])];
-            inv[b] = _mm512_set1_ps(rows.close(js[b], sums) as f32);
+        // Each row's inverse total on its half; 0 for the rows a last group lacks.
+        let mut inv = [zero; PAIRS];
+        for q in 0..PAIRS {
+            let sums = [half_sums_f64(part[q][0]), half_sums_f64(part[q][1]), half_sums_f64(part[q][2])];
+            let mut half = [0.0f32; PAIR];
+            for (h, v) in half.iter_mut().enumerate() {
+                if let Some(&j) = js.get(PAIR * q + h) {
+                    *v = rows.close(j, [sums[0][h], sums[1][h], sums[2][h]]) as f32;
+                }
+            }
+            inv[q] = _mm512_mask_blend_ps(UPPER, _mm512_set1_ps(half[0]), _mm512_set1_ps(half[1]));
         }
         for &k in live {
             let k = k as usize;
@@ -664,13 +882,14 @@ mod avx512 {
                 // SAFETY: each sum holds sixteen lanes.
                 *v = unsafe { _mm512_loadu_ps(c.as_ptr()) };
             }
-            for b in 0..B {
+            for q in 0..PAIRS {
                 // SAFETY: as in the first pass.
-                let p = _mm512_mul_ps(unsafe { _mm512_loadu_ps(row.add(k * GROUP + b).cast()) }, inv[b]);
+                let e = unsafe { _mm512_loadu_ps(row.add(k * GROUP + PAIR * q).cast()) };
+                let p = _mm512_mul_ps(e, inv[q]);
                 a[0] = _mm512_add_ps(a[0], p);
-                a[1] = _mm512_fmadd_ps(p, xv[b][0], a[1]);
-                a[2] = _mm512_fmadd_ps(p, xv[b][1], a[2]);
-                a[3] = _mm512_fmadd_ps(p, xv[b][2], a[3]);
+                a[1] = _mm512_fmadd_ps(p, xv[q][0], a[1]);
+                a[2] = _mm512_fmadd_ps(p, xv[q][1], a[2]);
+                a[3] = _mm512_fmadd_ps(p, xv[q][2], a[3]);
             }
             for (c, v) in ak.iter_mut().zip(a) {
                 // SAFETY: as above.
