@@ -192,24 +192,30 @@ impl View<'_> {
         let fine = self.occlusion.is_some();
         let (hidden_weight, grazing_cos) = if fine { (HIDDEN_WEIGHT_FINE, GRAZING_COS) } else { (HIDDEN_WEIGHT, 0.0) };
         out.clear();
+        // How far each point faces the camera (≤ 0: away), in a pass of
+        // plain arithmetic that vectorises; then the occlusion test, a
+        // lookup, only where a point faces it. One pass with both took 6 %
+        // of a mug's registration.
         out.extend(normals_world.zip(y_world).map(|(n, y)| {
             let to_camera = vp - Vector3::from(*y);
-            let mut facing = n.dot(&to_camera);
+            let facing = n.dot(&to_camera);
             // The coarse stage and the race (no grazing margin) skip the norm's
             // square root, the same result (measured, `VIEWPOINT=known
             // bench_register mug 3`, two alternating pairs: coarse 2.40 / 2.38
             // → 2.30 / 2.32 ms p50, race 1.98 / 1.92 → 1.88 / 1.88).
             if grazing_cos != 0.0 {
-                facing -= grazing_cos * to_camera.norm();
-            }
-            let hidden = facing <= 0.0 || self.occlusion.is_some_and(|fs| fs.hidden_behind_seen(y, tol));
-            if hidden {
-                hidden_weight
+                facing - grazing_cos * to_camera.norm()
             } else {
-                1.0
+                facing
             }
         }));
-        let mean = out.iter().sum::<f64>() / out.len().max(1) as f64;
+        let mut total = 0.0;
+        for (w, y) in out.iter_mut().zip(y_world) {
+            let hidden = *w <= 0.0 || self.occlusion.is_some_and(|fs| fs.hidden_behind_seen(y, tol));
+            *w = if hidden { hidden_weight } else { 1.0 };
+            total += *w;
+        }
+        let mean = total / out.len().max(1) as f64;
         out.iter_mut().for_each(|w| *w /= mean);
         Some(out)
     }
