@@ -494,6 +494,55 @@ mod tests {
     use crate::tools::{self, Category, Split};
     use rand::SeedableRng;
 
+    /// `pose_sums` against the plain per-point sums in nalgebra's small
+    /// matrices: 21 points (two whole chunks of lanes and a padded rest),
+    /// some of them weighted 0 or 1e-13 (left out), through the dispatch
+    /// and through the portable lanes.
+    #[test]
+    fn pose_sums_match_the_plain_per_point_sums() {
+        use rand::Rng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(17);
+        let m = 21;
+        let mut point = || [0, 1, 2].map(|_| rng.random_range(-0.1..0.1));
+        let (y, normals): (Vec<P3>, Vec<P3>) = (0..m).map(|_| (point(), point())).unzip();
+        let px: Vec<P3> = (0..m).map(|_| point()).collect();
+        let p1: Vec<f64> = (0..m).map(|i| [0.0, 1e-13, 0.3, 0.9, 0.05][i % 5]).collect();
+        let post = Posteriors { p1, px, ..Default::default() };
+        let turn = Rotation3::new(Vector3::new(0.3, -0.2, 0.5)).into_inner();
+        let pose = super::super::Pose { r: turn, t: Vector3::new(0.01, 0.02, -0.03), s: 1.1 };
+        let (a, b) = (2.0e4, 3.0e5);
+        let (mut sp, mut su, mut suu, mut sq) = (0.0, Vector3::zeros(), Matrix3::zeros(), 0.0);
+        let (mut h_normal, mut g) = (M7::zeros(), V7::zeros());
+        for i in 0..m {
+            let p = post.p1[i];
+            if p <= 1e-12 {
+                continue;
+            }
+            let u = pose.s * (pose.r * Vector3::from(y[i]));
+            let n = pose.r * Vector3::from(normals[i]);
+            let r = Vector3::from(post.px[i]) / p - u - pose.t;
+            let (jn, jr) = (jt(&u, &n), jt(&u, &r));
+            h_normal += (p * b) * jn * jn.transpose();
+            g += p * (a * jr + b * n.dot(&r) * jn);
+            sp += p;
+            su += p * u;
+            suu += p * u * u.transpose();
+            sq += p * u.norm_squared();
+        }
+        let near = |x: f64, want: f64, what: &str| {
+            assert!((x - want).abs() <= 1e-12 * want.abs().max(1.0), "{what}: {x} against {want}");
+        };
+        for got in [pose_sums(&post, &y, &normals, &pose, (a, b)), pose_sums_lanes(&post, &y, &normals, &pose, (a, b))]
+        {
+            near(got.sp, sp, "Σp");
+            near(got.sq, sq, "Σp|u|²");
+            (0..3).for_each(|j| near(got.su[j], su[j], "Σpu"));
+            (0..9).for_each(|e| near(got.suu[e], suu[e], "Σpuuᵀ"));
+            (0..7).for_each(|j| near(got.g[j], g[j], "g"));
+            (0..49).for_each(|e| near(got.h_normal[e], h_normal[e], "H_normal"));
+        }
+    }
+
     #[test]
     fn squarem_brings_the_polish_nearer_convergence_in_the_same_iterations() {
         // From the refine's end, the plain polish's σ_n falls and its latent
