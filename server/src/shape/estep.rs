@@ -169,9 +169,13 @@ impl EStep {
 
     /// The negative log-likelihood alone (as `Posteriors::neg_log_likelihood`
     /// of `run_weighted`), for scoring a pose without fitting it: in the dense
-    /// single-precision regime it skips the posterior sums, a sixth of the work.
+    /// single-precision regime it skips the posterior sums, a sixth of the
+    /// work, and in the blocked one their second pass (`round_likelihood`).
     pub fn neg_log_likelihood(&mut self, y: &[P3], weights: Option<&[f64]>, sigma2: f64, w: f64) -> f64 {
         let (m, n) = (y.len(), self.x.len());
+        if self.blocked && self.truncates(sigma2) {
+            return self.round_likelihood(y, weights, sigma2, w);
+        }
         let mut post = std::mem::take(&mut self.scratch);
         if m == 0 || n == 0 || self.truncates(sigma2) || !self.single_precision {
             self.run_weighted(y, weights, sigma2, w, &mut post);

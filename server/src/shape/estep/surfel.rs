@@ -389,7 +389,7 @@ impl EStep {
         }
         let (kt, kd) = exponents(surfels);
         let cutoff = self.cutoff_sigmas * surfels.tangent_sigma2.sqrt();
-        self.run_blocked::<false>(
+        self.run_blocked::<false, true>(
             y,
             Some(surfels.normals),
             (kt, kd),
@@ -406,13 +406,27 @@ impl EStep {
     /// sums. Pairs beyond `cutoff_sigmas`·σ are dropped by whole blocks.
     pub(super) fn run_round(&mut self, y: &[P3], weights: Option<&[f64]>, sigma2: f64, w: f64, out: &mut Posteriors) {
         let cutoff = self.cutoff_sigmas * sigma2.sqrt();
-        self.run_blocked::<true>(y, None, (exponent_f32(sigma2), 0.0), sigma2, cutoff, weights, w, out);
+        self.run_blocked::<true, true>(y, None, (exponent_f32(sigma2), 0.0), sigma2, cutoff, weights, w, out);
+    }
+
+    /// [`Self::run_round`]'s negative log-likelihood alone: the kernels
+    /// close each data point's row and skip the posterior sums (their
+    /// stores and second pass over the blocks), the same likelihood to the
+    /// bit. Scoring poses (the race's survivors, the yaw sweep) needs no more.
+    pub(super) fn round_likelihood(&mut self, y: &[P3], weights: Option<&[f64]>, sigma2: f64, w: f64) -> f64 {
+        let cutoff = self.cutoff_sigmas * sigma2.sqrt();
+        let mut out = std::mem::take(&mut self.scratch);
+        self.run_blocked::<true, false>(y, None, (exponent_f32(sigma2), 0.0), sigma2, cutoff, weights, w, &mut out);
+        let nll = out.neg_log_likelihood;
+        self.scratch = out;
+        nll
     }
 
     /// The blocked E-step with exponent factors `kt`, `kd` (see `exponents`)
-    /// and the isotropic variance of the same normalising constant.
+    /// and the isotropic variance of the same normalising constant; without
+    /// `STATS`, only the likelihood and Pᵀ1 (`out`'s P1 and PX stay 0).
     #[allow(clippy::too_many_arguments)]
-    fn run_blocked<const ROUND: bool>(
+    fn run_blocked<const ROUND: bool, const STATS: bool>(
         &mut self,
         y: &[P3],
         normals: Option<&[P3]>,
@@ -438,9 +452,11 @@ impl EStep {
         b.reach.clear();
         b.reach.extend(b.groups.iter().map(|g| g[3] + cutoff as f32));
         let mut rows = Rows { pt1: &mut out.pt1, log_den: LogSum::default(), sums: ResidualSums::default(), c: k.c };
-        blocked_surfels::<ROUND>(self.simd, &mut b, k, &mut rows);
+        blocked_surfels::<ROUND, STATS>(self.simd, &mut b, k, &mut rows);
         let (log_den, sums) = (rows.log_den, rows.sums);
-        b.store(out);
+        if STATS {
+            b.store(out);
+        }
         self.surfel_buf = b;
         out.np = out.p1.iter().sum();
         out.neg_log_likelihood = n as f64 * 1.5 * sigma2.ln() - log_den.total();
@@ -449,19 +465,25 @@ impl EStep {
 }
 
 /// The blocked kernels; `ROUND`: isotropic components (no normals, no
-/// residual sums).
-fn blocked_surfels<const ROUND: bool>(simd: Simd, b: &mut SurfelBuffers, k: Factors, rows: &mut Rows) {
+/// residual sums); `STATS`: the posterior sums P1 and PX too (else only
+/// each row's total, closed into `rows`).
+fn blocked_surfels<const ROUND: bool, const STATS: bool>(
+    simd: Simd,
+    b: &mut SurfelBuffers,
+    k: Factors,
+    rows: &mut Rows,
+) {
     #[cfg(target_arch = "x86_64")]
     {
         // SAFETY: `simd` comes from `Simd::detect`: the CPU runs what these are compiled for.
         match simd {
-            Simd::Avx512 => return unsafe { avx512::blocked_surfels::<ROUND>(b, k, rows) },
-            Simd::Avx2 => return unsafe { avx2::blocked_surfels::<ROUND>(b, k, rows) },
+            Simd::Avx512 => return unsafe { avx512::blocked_surfels::<ROUND, STATS>(b, k, rows) },
+            Simd::Avx2 => return unsafe { avx2::blocked_surfels::<ROUND, STATS>(b, k, rows) },
             Simd::Portable => {}
         }
     }
     let _ = simd;
-    blocked_surfels_rows::<false, ROUND>(b, k, rows)
+    blocked_surfels_rows::<false, ROUND, STATS>(b, k, rows)
 }
 
 /// The kernel's constants: the exponent factors (`exponents`) and the outlier term.
@@ -520,7 +542,11 @@ fn live_blocks<const FMA: bool>(spheres: &[Vec<f32>; 4], g: &[f32; 4], reach: f3
 /// affinity·(n·r)² and affinity·|r|², then the posteriors into the blocks'
 /// P1 and PX. Written over fixed-size lanes so that every loop vectorises.
 #[inline(always)]
-fn blocked_surfels_rows<const FMA: bool, const ROUND: bool>(b: &mut SurfelBuffers, k: Factors, rows: &mut Rows) {
+fn blocked_surfels_rows<const FMA: bool, const ROUND: bool, const STATS: bool>(
+    b: &mut SurfelBuffers,
+    k: Factors,
+    rows: &mut Rows,
+) {
     const W: usize = 2 * BLOCK;
     const PAIRS: usize = GROUP / 2;
     let SurfelBuffers { blocks, spheres, row, acc, live, x, x_index, groups, reach, .. } = b;
@@ -547,7 +573,9 @@ fn blocked_surfels_rows<const FMA: bool, const ROUND: bool>(b: &mut SurfelBuffer
                     let r2 = madd::<FMA>(dx, dx, madd::<FMA>(dy, dy, dz * dz));
                     if ROUND {
                         let e = pi[l] * exp2_neg_f32::<FMA>(kt * r2);
-                        out[l] = e;
+                        if STATS {
+                            out[l] = e;
+                        }
                         ps[l] += e;
                         continue;
                     }
@@ -575,7 +603,7 @@ fn blocked_surfels_rows<const FMA: bool, const ROUND: bool>(b: &mut SurfelBuffer
                 inv[h * BLOCK..(h + 1) * BLOCK].fill(i);
             }
         }
-        for &k in live {
+        for &k in live.iter().filter(|_| STATS) {
             let rk = row[k as usize * GROUP..(k as usize + 1) * GROUP].as_flattened();
             let ak = &mut acc[k as usize];
             for (q, e) in rk.chunks_exact(W).enumerate() {
@@ -607,7 +635,11 @@ mod avx2 {
     /// # Safety
     /// The CPU must have AVX2 and FMA.
     #[target_feature(enable = "avx2,fma")]
-    pub(super) unsafe fn blocked_surfels<const ROUND: bool>(b: &mut SurfelBuffers, k: Factors, rows: &mut Rows) {
+    pub(super) unsafe fn blocked_surfels<const ROUND: bool, const STATS: bool>(
+        b: &mut SurfelBuffers,
+        k: Factors,
+        rows: &mut Rows,
+    ) {
         let SurfelBuffers { blocks, spheres, row, acc, live, x, x_index, groups, reach, .. } = b;
         let nb = blocks.len();
         assert!(row.len() >= nb * GROUP && acc.len() == nb && live.len() >= nb);
@@ -621,7 +653,7 @@ mod avx2 {
             let mut xs = [xg[xg.len() - 1]; GROUP];
             xs[..xg.len()].copy_from_slice(xg);
             // SAFETY: `live` holds block indices below nb; the buffers' lengths are asserted above.
-            unsafe { group::<ROUND>(blocks, row, acc, &live[..count], &xs, jg, &f, rows) };
+            unsafe { group::<ROUND, STATS>(blocks, row, acc, &live[..count], &xs, jg, &f, rows) };
         }
     }
 
@@ -647,7 +679,7 @@ mod avx2 {
     /// `live` holds indices of `blocks`, `acc` is as long as `blocks` and `row` GROUP times longer.
     #[target_feature(enable = "avx2,fma")]
     #[allow(clippy::too_many_arguments)]
-    unsafe fn group<const ROUND: bool>(
+    unsafe fn group<const ROUND: bool, const STATS: bool>(
         blocks: &[super::Block],
         row: &mut [super::Lanes],
         acc: &mut [[super::Wide; 4]],
@@ -689,8 +721,10 @@ mod avx2 {
                 if ROUND {
                     // SAFETY: the CPU has AVX2 and FMA (this function's features).
                     let e = _mm256_mul_ps(pi, unsafe { exp2_neg_f32x8(_mm256_mul_ps(f.kt, r2)) });
-                    // SAFETY: as above.
-                    unsafe { _mm256_storeu_ps(out, e) };
+                    if STATS {
+                        // SAFETY: as above.
+                        unsafe { _mm256_storeu_ps(out, e) };
+                    }
                     part[b][0] = _mm256_add_ps(part[b][0], e);
                     continue;
                 }
@@ -712,6 +746,9 @@ mod avx2 {
         for (b, &j) in js.iter().enumerate() {
             let sums = [lane_sum_f64(part[b][0]), lane_sum_f64(part[b][1]), lane_sum_f64(part[b][2])];
             inv[b] = _mm256_set1_ps(rows.close(j, sums) as f32);
+        }
+        if !STATS {
+            return;
         }
         for &k in live {
             let k = k as usize;
@@ -760,7 +797,11 @@ mod avx512 {
     /// # Safety
     /// The CPU must have AVX-512F.
     #[target_feature(enable = "avx512f")]
-    pub(super) unsafe fn blocked_surfels<const ROUND: bool>(b: &mut SurfelBuffers, k: Factors, rows: &mut Rows) {
+    pub(super) unsafe fn blocked_surfels<const ROUND: bool, const STATS: bool>(
+        b: &mut SurfelBuffers,
+        k: Factors,
+        rows: &mut Rows,
+    ) {
         let SurfelBuffers { blocks, spheres, row, acc, live, x, x_index, groups, reach, .. } = b;
         let nb = blocks.len();
         assert!(row.len() >= nb * GROUP && acc.len() == nb && live.len() >= nb.next_multiple_of(WIDTH) + WIDTH);
@@ -774,7 +815,7 @@ mod avx512 {
             let mut xs = [xg[xg.len() - 1]; GROUP];
             xs[..xg.len()].copy_from_slice(xg);
             // SAFETY: `live` holds block indices below nb; the buffers' lengths are asserted above.
-            unsafe { group::<ROUND>(blocks, row, acc, &live[..count], &xs, jg, &f, rows) };
+            unsafe { group::<ROUND, STATS>(blocks, row, acc, &live[..count], &xs, jg, &f, rows) };
         }
     }
 
@@ -838,7 +879,7 @@ mod avx512 {
     /// `live` holds indices of `blocks`, `acc` is as long as `blocks` and `row` GROUP times longer.
     #[target_feature(enable = "avx512f")]
     #[allow(clippy::too_many_arguments)]
-    unsafe fn group<const ROUND: bool>(
+    unsafe fn group<const ROUND: bool, const STATS: bool>(
         blocks: &[super::Block],
         row: &mut [super::Lanes],
         acc: &mut [[super::Wide; 4]],
@@ -883,8 +924,10 @@ mod avx512 {
                 let out = unsafe { row.add(k * GROUP + PAIR * q).cast::<f32>() };
                 if ROUND {
                     let e = weighted_exp2_neg_f32x16(pi, _mm512_mul_ps(f.kt, r2));
-                    // SAFETY: as above.
-                    unsafe { _mm512_storeu_ps(out, e) };
+                    if STATS {
+                        // SAFETY: as above.
+                        unsafe { _mm512_storeu_ps(out, e) };
+                    }
                     part[q][0] = _mm512_add_ps(part[q][0], e);
                     continue;
                 }
@@ -911,6 +954,9 @@ mod avx512 {
                 }
             }
             inv[q] = _mm512_mask_blend_ps(UPPER, _mm512_set1_ps(half[0]), _mm512_set1_ps(half[1]));
+        }
+        if !STATS {
+            return;
         }
         for &k in live {
             let k = k as usize;
@@ -1064,6 +1110,8 @@ mod tests {
             let mut out = Posteriors::default();
             e.run_weighted(&y, Some(&pi), sigma2, 0.1, &mut out);
             assert_posteriors_near(&out, &want, simd);
+            // The likelihood alone (no posterior sums) is the same number to the bit.
+            assert_eq!(e.neg_log_likelihood(&y, Some(&pi), sigma2, 0.1), out.neg_log_likelihood, "{simd:?}");
         }
     }
 
