@@ -704,7 +704,7 @@ mod avx2 {
             let bk = unsafe { blocks.get_unchecked(k) };
             let (mut y, mut n) = ([zero; 3], [zero; 3]);
             for i in 0..3 {
-                // SAFETY: each column holds eight lanes.
+                // SAFETY: each column holds sixteen lanes; this reads the first eight.
                 y[i] = unsafe { _mm256_loadu_ps(bk.y[i].as_ptr()) };
                 if !ROUND {
                     // SAFETY: as above.
@@ -907,7 +907,7 @@ mod avx512 {
             let bk = unsafe { blocks.get_unchecked(k) };
             let (mut y, mut n) = ([zero; 3], [zero; 3]);
             for i in 0..3 {
-                // SAFETY: each column holds eight lanes.
+                // SAFETY: each column holds sixteen lanes (its eight twice).
                 y[i] = unsafe { _mm512_loadu_ps(bk.y[i].as_ptr()) };
                 if !ROUND {
                     // SAFETY: as above.
