@@ -483,7 +483,7 @@ fn blocked_surfels<const ROUND: bool, const STATS: bool>(
         }
     }
     let _ = simd;
-    blocked_surfels_rows::<false, ROUND, STATS>(b, k, rows)
+    blocked_surfels_rows::<ROUND, STATS>(b, k, rows)
 }
 
 /// The kernel's constants: the exponent factors (`exponents`) and the outlier term.
@@ -534,25 +534,22 @@ fn live_blocks<const FMA: bool>(spheres: &[Vec<f32>; 4], g: &[f32; 4], reach: f3
     count
 }
 
-/// Two data points at a time (the blocks within reach tested once a group),
+/// The portable kernel (unfused, for CPUs with neither AVX2 nor AVX-512):
+/// two data points at a time (the blocks within reach tested once a group),
 /// on sixteen lanes: a block's eight points on each half, as the AVX-512
 /// kernel lays them out (over eight lanes LLVM unrolled the loops whole and
-/// left them scalar: the AVX2 path 3-4 times slower). The affinities
+/// left them scalar: compiled for AVX2, 3-4 times slower than blocks of 16). The affinities
 /// w·2^{kt·|r|² + kd·(n·r)²} with the rows' sums of affinity,
 /// affinity·(n·r)² and affinity·|r|², then the posteriors into the blocks'
 /// P1 and PX. Written over fixed-size lanes so that every loop vectorises.
 #[inline(always)]
-fn blocked_surfels_rows<const FMA: bool, const ROUND: bool, const STATS: bool>(
-    b: &mut SurfelBuffers,
-    k: Factors,
-    rows: &mut Rows,
-) {
+fn blocked_surfels_rows<const ROUND: bool, const STATS: bool>(b: &mut SurfelBuffers, k: Factors, rows: &mut Rows) {
     const W: usize = 2 * BLOCK;
     const PAIRS: usize = GROUP / 2;
     let SurfelBuffers { blocks, spheres, row, acc, live, x, x_index, groups, reach, .. } = b;
     let Factors { kt, kd, .. } = k;
     for ((xg, jg), (g, &reach)) in x.chunks(GROUP).zip(x_index.chunks(GROUP)).zip(groups.iter().zip(reach.iter())) {
-        let count = live_blocks::<FMA>(spheres, g, reach, live);
+        let count = live_blocks::<false>(spheres, g, reach, live);
         let live = &live[..count];
         // A last group of fewer points repeats its last point in the
         // missing rows, which are not closed and add nothing to the sums.
@@ -570,26 +567,26 @@ fn blocked_surfels_rows<const FMA: bool, const ROUND: bool, const STATS: bool>(
                 let xq = &xw[q];
                 for l in 0..W {
                     let (dx, dy, dz) = (xq[0][l] - y[0][l], xq[1][l] - y[1][l], xq[2][l] - y[2][l]);
-                    let r2 = madd::<FMA>(dx, dx, madd::<FMA>(dy, dy, dz * dz));
+                    let r2 = madd::<false>(dx, dx, madd::<false>(dy, dy, dz * dz));
                     if ROUND {
-                        let e = pi[l] * exp2_neg_f32::<FMA>(kt * r2);
+                        let e = pi[l] * exp2_neg_f32::<false>(kt * r2);
                         if STATS {
                             out[l] = e;
                         }
                         ps[l] += e;
                         continue;
                     }
-                    let an = madd::<FMA>(n[0][l], dx, madd::<FMA>(n[1][l], dy, n[2][l] * dz));
+                    let an = madd::<false>(n[0][l], dx, madd::<false>(n[1][l], dy, n[2][l] * dz));
                     let an2 = an * an;
-                    let e = pi[l] * exp2_neg_f32::<FMA>(madd::<FMA>(kd, an2, kt * r2));
+                    let e = pi[l] * exp2_neg_f32::<false>(madd::<false>(kd, an2, kt * r2));
                     out[l] = e;
                     ps[l] += e;
                     // The variances' sums leave out the faintest pairs: their
                     // affinity times a small squared residual would land among
                     // f32's subnormals.
                     let g = if e < RESIDUAL_SUMS_FLOOR { 0.0 } else { e };
-                    pn[l] = madd::<FMA>(g, an2, pn[l]);
-                    pr[l] = madd::<FMA>(g, r2, pr[l]);
+                    pn[l] = madd::<false>(g, an2, pn[l]);
+                    pr[l] = madd::<false>(g, r2, pr[l]);
                 }
             }
         }
@@ -610,9 +607,9 @@ fn blocked_surfels_rows<const FMA: bool, const ROUND: bool, const STATS: bool>(
                 for l in 0..W {
                     let p = e[l] * inv[q][l];
                     ak[0][l] += p;
-                    ak[1][l] = madd::<FMA>(p, xw[q][0][l], ak[1][l]);
-                    ak[2][l] = madd::<FMA>(p, xw[q][1][l], ak[2][l]);
-                    ak[3][l] = madd::<FMA>(p, xw[q][2][l], ak[3][l]);
+                    ak[1][l] = madd::<false>(p, xw[q][0][l], ak[1][l]);
+                    ak[2][l] = madd::<false>(p, xw[q][1][l], ak[2][l]);
+                    ak[3][l] = madd::<false>(p, xw[q][2][l], ak[3][l]);
                 }
             }
         }
