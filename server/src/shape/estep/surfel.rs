@@ -518,6 +518,16 @@ impl Rows<'_> {
     }
 }
 
+/// A group's data points, `GROUP` of them: a last group of fewer repeats
+/// its last point in the missing rows, which the kernels do not close and
+/// which add nothing to the sums.
+#[inline(always)]
+fn whole_group(xg: &[[f32; 3]]) -> [[f32; 3]; GROUP] {
+    let mut xs = [xg[xg.len() - 1]; GROUP];
+    xs[..xg.len()].copy_from_slice(xg);
+    xs
+}
+
 /// The blocks whose sphere lies within `reach` of group `g`'s centre
 /// (`SurfelBuffers::reach`), as indices at the start of `live`; returns how many.
 #[inline(always)]
@@ -551,10 +561,7 @@ fn blocked_surfels_rows<const ROUND: bool, const STATS: bool>(b: &mut SurfelBuff
     for ((xg, jg), (g, &reach)) in x.chunks(GROUP).zip(x_index.chunks(GROUP)).zip(groups.iter().zip(reach.iter())) {
         let count = live_blocks::<false>(spheres, g, reach, live);
         let live = &live[..count];
-        // A last group of fewer points repeats its last point in the
-        // missing rows, which are not closed and add nothing to the sums.
-        let mut xs = [xg[xg.len() - 1]; GROUP];
-        xs[..xg.len()].copy_from_slice(xg);
+        let xs = whole_group(xg);
         // Pair q's coordinates: point 2q on the lower half, 2q + 1 on the upper.
         let xw: [[Wide; 3]; PAIRS] =
             std::array::from_fn(|q| std::array::from_fn(|d| std::array::from_fn(|l| xs[2 * q + l / BLOCK][d])));
@@ -624,7 +631,7 @@ fn blocked_surfels_rows<const ROUND: bool, const STATS: bool>(b: &mut SurfelBuff
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
     use super::super::exp2_neg_f32x8;
-    use super::{Factors, Rows, SurfelBuffers, BLOCK, GROUP, RESIDUAL_SUMS_FLOOR};
+    use super::{whole_group, Factors, Rows, SurfelBuffers, BLOCK, GROUP, RESIDUAL_SUMS_FLOOR};
     use std::arch::x86_64::*;
 
     const _: () = assert!(BLOCK == 8);
@@ -645,10 +652,7 @@ mod avx2 {
             Consts { kt: _mm256_set1_ps(k.kt), kd: _mm256_set1_ps(k.kd), floor: _mm256_set1_ps(RESIDUAL_SUMS_FLOOR) };
         for (((xg, jg), g), &r) in x.chunks(GROUP).zip(x_index.chunks(GROUP)).zip(groups.iter()).zip(reach.iter()) {
             let count = super::live_blocks::<true>(spheres, g, r, live);
-            // A last group of fewer points repeats its last point in the
-            // missing rows, which are not closed and add nothing to the sums.
-            let mut xs = [xg[xg.len() - 1]; GROUP];
-            xs[..xg.len()].copy_from_slice(xg);
+            let xs = whole_group(xg);
             // SAFETY: `live` holds block indices below nb; the buffers' lengths are asserted above.
             unsafe { group::<ROUND, STATS>(blocks, row, acc, &live[..count], &xs, jg, &f, rows) };
         }
@@ -780,7 +784,7 @@ mod avx2 {
 #[cfg(target_arch = "x86_64")]
 mod avx512 {
     use super::super::avx512::weighted_exp2_neg_f32x16;
-    use super::{Factors, Rows, SurfelBuffers, BLOCK, GROUP, RESIDUAL_SUMS_FLOOR};
+    use super::{whole_group, Factors, Rows, SurfelBuffers, BLOCK, GROUP, RESIDUAL_SUMS_FLOOR};
     use std::arch::x86_64::*;
 
     /// Lanes of an AVX-512 vector of f32.
@@ -807,10 +811,7 @@ mod avx512 {
             Consts { kt: _mm512_set1_ps(k.kt), kd: _mm512_set1_ps(k.kd), floor: _mm512_set1_ps(RESIDUAL_SUMS_FLOOR) };
         for (((xg, jg), g), &r) in x.chunks(GROUP).zip(x_index.chunks(GROUP)).zip(groups.iter()).zip(reach.iter()) {
             let count = live_blocks(spheres, g, r, live);
-            // A last group of fewer points repeats its last point in the
-            // missing rows, which are not closed and add nothing to the sums.
-            let mut xs = [xg[xg.len() - 1]; GROUP];
-            xs[..xg.len()].copy_from_slice(xg);
+            let xs = whole_group(xg);
             // SAFETY: `live` holds block indices below nb; the buffers' lengths are asserted above.
             unsafe { group::<ROUND, STATS>(blocks, row, acc, &live[..count], &xs, jg, &f, rows) };
         }
