@@ -679,11 +679,15 @@ impl LinearModel {
     }
     /// base + Σⱼ ℓⱼ basisⱼ into `out`, mode after mode (EM evaluates the
     /// model every iteration: 9 modes × 800 points on the polish level).
+    /// Modes at exactly zero add nothing and are skipped: the race and the
+    /// yaw sweep fit and score the mean shape, all of its modes zero.
     pub fn evaluate_into(&self, latent: &[f64], out: &mut Vec<P3>) {
         out.clear();
         out.extend_from_slice(&self.base);
-        for (b, l) in self.basis.iter().zip(latent) {
-            add_scaled(out.as_flattened_mut(), *l, b.as_flattened());
+        for (b, &l) in self.basis.iter().zip(latent) {
+            if l != 0.0 {
+                add_scaled(out.as_flattened_mut(), l, b.as_flattened());
+            }
         }
     }
     /// The sub-model of the given point indices.
