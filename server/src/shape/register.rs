@@ -35,12 +35,14 @@ use serde::Serialize;
 use std::time::Instant;
 
 mod em;
+mod latent;
 mod starts;
 mod surfels;
 mod sweep;
 mod viewpoint;
 
-use em::{em, Fit, LatentStep, Pose, Support, View, ViewPoints, REST_POSE_COS};
+use em::{em, Fit, Pose, Support, View, ViewPoints, REST_POSE_COS};
+use latent::LatentStep;
 use starts::{principal_frame, side_facing, Starts, UPRIGHT_ONE_WAY, UPRIGHT_SIDE_FACING};
 
 use sweep::{sweep_axis, YawSweep};
@@ -525,7 +527,8 @@ impl Models {
         let normals = |idx: &[usize]| idx.iter().map(|&i| space.surface_normals[i]).collect();
         let level = |idx: &[usize]| {
             let model = surface.select(idx);
-            LatentLevel { step: LatentStep::new(&model), model, normals: normals(idx) }
+            let normals: Vec<P3> = normals(idx);
+            LatentLevel { step: LatentStep::new(&model, &normals), model, normals }
         };
         let models = Self {
             fine: level(fine_idx),

@@ -3,14 +3,12 @@
 //! update), its SQUAREM acceleration, and what a fit is given: the pose, the
 //! view's visibility weights and the table's support.
 
+use super::latent::{add_support_term, solve, LatentStep};
 use super::{RegisterOptions, LOOSE_SCALE_PRIOR_STD};
 use crate::shape::cpd::{weighted_similarity, Normalization};
-use crate::shape::estep::{dot, initial_sigma2, EStep, Posteriors, P3};
+use crate::shape::estep::{initial_sigma2, EStep, Posteriors, P3};
 use crate::shape::freespace::FreeSpace;
 use crate::shape::space::LinearModel;
-use crate::simd::clear_upper_state;
-use faer::prelude::*;
-use faer::Side;
 use nalgebra::{Matrix3, Rotation3, Vector3};
 
 /// Similarity pose: x = s·R·y + t (y normalised canonical, x cloud frame).
@@ -275,151 +273,6 @@ impl ViewPoints {
     pub(super) fn estep(&self) -> EStep {
         self.0.clone()
     }
-}
-
-/// The latent half of the M-step for one model. The normal equations are
-/// A ℓ = b with A = Σᵢ P1ᵢ BᵢᵀBᵢ + σ²/s² Λ⁻¹ and b = Σᵢ Bᵢᵀ rᵢ (Bᵢ the 3×q
-/// basis rows of point i, rᵢ its posterior-weighted residual in the model
-/// frame). The model is fixed during a fit, so the per-point products BᵢᵀBᵢ
-/// are computed once and A is q(q+1)/2 contiguous dot products of length M
-/// with P1 (measured: drill fine stage 1.50 → 1.42 ms p50).
-pub(super) struct LatentStep {
-    pub(super) q: usize,
-    /// (BᵢᵀBᵢ)_jk for j ≤ k, one column over the points per pair (row-major pairs).
-    pub(super) gram: Vec<Vec<f64>>,
-    /// basis[j] as three columns over the points.
-    pub(super) basis: Vec<[Vec<f64>; 3]>,
-    pub(super) base: [Vec<f64>; 3],
-}
-
-impl LatentStep {
-    pub(super) fn new(model: &LinearModel) -> Self {
-        let q = model.basis.len();
-        let column = |v: &[P3], d: usize| v.iter().map(|p| p[d]).collect::<Vec<f64>>();
-        let mut gram = Vec::with_capacity(q * (q + 1) / 2);
-        for j in 0..q {
-            for k in j..q {
-                gram.push(model.basis[j].iter().zip(&model.basis[k]).map(|(a, b)| dot(a, b)).collect());
-            }
-        }
-        Self {
-            q,
-            gram,
-            basis: model.basis.iter().map(|b| [0, 1, 2].map(|d| column(b, d))).collect(),
-            base: [0, 1, 2].map(|d| column(&model.base, d)),
-        }
-    }
-
-    /// rᵢ = Rᵀ(PXᵢ − P1ᵢ t)/s − P1ᵢ baseᵢ, the posterior-weighted residuals
-    /// of the mean shape in the model frame, as three columns.
-    pub(super) fn residuals(&self, post: &Posteriors, pose: &Pose) -> [Vec<f64>; 3] {
-        let rt = pose.r.transpose();
-        let m = post.p1.len();
-        let mut r: [Vec<f64>; 3] = Default::default();
-        for c in r.iter_mut() {
-            c.reserve(m);
-        }
-        for (i, (&p1, px)) in post.p1.iter().zip(&post.px).enumerate() {
-            let v = rt * (Vector3::from(*px) - pose.t * p1) / pose.s;
-            for d in 0..3 {
-                r[d].push(v[d] - self.base[d][i] * p1);
-            }
-        }
-        r
-    }
-
-    /// The MAP latent for these posteriors and pose; `reg` = prior weight·σ²/s².
-    pub(super) fn solve(
-        &self,
-        post: &Posteriors,
-        pose: &Pose,
-        reg: f64,
-        var: &[f64],
-        support: Option<(&[f64], f64, f64)>,
-    ) -> Option<Vec<f64>> {
-        let q = self.q;
-        let r = self.residuals(post, pose);
-        let mut a = Mat::<f64>::zeros(q, q);
-        let mut b = Mat::<f64>::zeros(q, 1);
-        let mut e = 0;
-        for j in 0..q {
-            b[(j, 0)] = (0..3).map(|d| dot_slices(&self.basis[j][d], &r[d])).sum();
-            for k in j..q {
-                let v = dot_slices(&self.gram[e], &post.p1);
-                a[(j, k)] = v;
-                a[(k, j)] = v;
-                e += 1;
-            }
-            a[(j, j)] += reg / var[j];
-        }
-        if let Some((g, e, k)) = support {
-            add_support_term(&mut a, &mut b, g, e, k);
-        }
-        let llt = a.llt(Side::Lower);
-        let sol = llt.ok().map(|l| l.solve(&b));
-        clear_upper_state();
-        let sol = sol?;
-        Some((0..q).map(|j| sol[(j, 0)]).collect())
-    }
-}
-
-/// Σ aᵢbᵢ with sixteen partial sums (four vectors of four), so that the
-/// loop vectorises and is not bound by one accumulator's latency. The latent
-/// steps' normal equations are these products (45 of them over the points
-/// and 27 more each step with 9 modes; twice that for surfels), and the crate
-/// is built for baseline x86-64, whose two-lane vectors LLVM would use
-/// everywhere: where the CPU has them, the same loop is compiled for AVX2 or
-/// AVX-512 too. Every lane adds its products in the same order with no fused
-/// multiply-add, so the sum is the same bit for bit on every level.
-/// Adds the support's rank-one term (`Support::latent_row`) to the latent's
-/// normal equations A ℓ = b: K·g·gᵀ to A and K·g·e to b.
-pub(super) fn add_support_term(a: &mut Mat<f64>, b: &mut Mat<f64>, g: &[f64], e: f64, k: f64) {
-    for j in 0..g.len() {
-        b[(j, 0)] += k * g[j] * e;
-        for l in 0..g.len() {
-            a[(j, l)] += k * g[j] * g[l];
-        }
-    }
-}
-
-pub(super) fn dot_slices(a: &[f64], b: &[f64]) -> f64 {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use crate::simd::Simd;
-        // SAFETY: `Simd::detect` found the features the functions are compiled for.
-        match Simd::detect(Simd::Avx512) {
-            Simd::Avx512 => return unsafe { dot_slices_avx512(a, b) },
-            Simd::Avx2 => return unsafe { dot_slices_avx2(a, b) },
-            Simd::Portable => {}
-        }
-    }
-    dot_slices_body(a, b)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-unsafe fn dot_slices_avx512(a: &[f64], b: &[f64]) -> f64 {
-    dot_slices_body(a, b)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn dot_slices_avx2(a: &[f64], b: &[f64]) -> f64 {
-    dot_slices_body(a, b)
-}
-
-#[inline(always)]
-fn dot_slices_body(a: &[f64], b: &[f64]) -> f64 {
-    const W: usize = 16;
-    let mut part = [0.0; W];
-    let (ca, cb) = (a.chunks_exact(W), b.chunks_exact(W));
-    let tail: f64 = ca.remainder().iter().zip(cb.remainder()).map(|(x, y)| x * y).sum();
-    for (x, y) in ca.zip(cb) {
-        for l in 0..W {
-            part[l] += x[l] * y[l];
-        }
-    }
-    part.iter().sum::<f64>() + tail
 }
 
 /// EM over pose (and latent, when `prior` is given).
@@ -719,8 +572,11 @@ impl EmMap for EmRun<'_> {
             if !st.latent.is_empty() {
                 let reg = sigma2 / (pose.s * pose.s) * opts.latent_prior_weight;
                 let row = support.zip(touching).map(|(sp, c)| sp.latent_row(step, pose, &self.contact, c.target));
-                let term = row.as_ref().map(|(g, e)| (g.as_slice(), *e, support.map_or(0.0, |sp| sp.weight) * post.np));
-                if let Some(sol) = step.solve(post, pose, reg, var, term) {
+                let (mut a, mut b) = step.sums(post, pose, None).system(step.q, (1.0, 0.0, 1.0), reg, var);
+                if let Some((g, e)) = &row {
+                    add_support_term(&mut a, &mut b, g, *e, support.map_or(0.0, |sp| sp.weight) * post.np);
+                }
+                if let Some(sol) = solve(a, b) {
                     st.latent.copy_from_slice(&sol);
                     self.inputs.model.evaluate_into(&st.latent, &mut self.y_model);
                 }
@@ -750,40 +606,5 @@ impl EmMap for EmRun<'_> {
         let (th, alpha) = squarem_jump(&pack(s0), &pack(s1), &pack(s2), max_step)?;
         let (pose, variances, latent) = coords.unpack(&th, 1);
         Some((EmState { pose, latent, sigma2: variances[0] }, alpha))
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use rand::SeedableRng;
-
-    /// Each level's dot product is the portable one bit for bit (the latent
-    /// steps, and with them every fit, must not depend on the CPU here).
-    #[test]
-    fn dot_products_are_the_same_on_every_level() {
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
-        use rand::Rng;
-        for n in [0, 5, 16, 37, 400, 803] {
-            let a: Vec<f64> = (0..n).map(|_| rng.random::<f64>() - 0.3).collect();
-            let b: Vec<f64> = (0..n).map(|_| rng.random::<f64>() * 1e-3).collect();
-            let want = dot_slices_body(&a, &b);
-            assert_eq!(dot_slices(&a, &b).to_bits(), want.to_bits(), "n = {n}");
-            #[cfg(target_arch = "x86_64")]
-            {
-                use crate::simd::Simd;
-                for level in Simd::available() {
-                    // SAFETY: `available` lists only levels this CPU runs.
-                    let got = unsafe {
-                        match level {
-                            Simd::Avx512 => dot_slices_avx512(&a, &b),
-                            Simd::Avx2 => dot_slices_avx2(&a, &b),
-                            Simd::Portable => dot_slices_body(&a, &b),
-                        }
-                    };
-                    assert_eq!(got.to_bits(), want.to_bits(), "{level:?}, n = {n}");
-                }
-            }
-        }
     }
 }

@@ -10,16 +10,11 @@
 //! under the refine's driver (`em::squarem`), accelerated only when asked
 //! (`RegisterOptions::accelerate_polish`).
 
-use super::em::{
-    add_support_term, dot_slices, scale_bounds, squarem, squarem_jump, EmMap, Fit, JumpCoords, Support, View,
-    ViewPoints,
-};
+use super::em::{scale_bounds, squarem, squarem_jump, EmMap, Fit, JumpCoords, Support, View, ViewPoints};
+use super::latent::{add_support_term, solve};
 use super::{LatentLevel, RegisterOptions, LOOSE_SCALE_PRIOR_STD};
 use crate::shape::cpd::Normalization;
-use crate::shape::estep::{dot, EStep, Posteriors, Surfels, P3};
-use crate::simd::clear_upper_state;
-use faer::prelude::*;
-use faer::Side;
+use crate::shape::estep::{EStep, Posteriors, Surfels, P3};
 use nalgebra::{Matrix3, Rotation3, SMatrix, SVector, Vector3};
 
 type M7 = SMatrix<f64, 7, 7>;
@@ -94,9 +89,6 @@ struct SurfelRun<'a> {
     weights: Vec<f64>,
     has_weights: bool,
     contact: Vec<usize>,
-    /// Each basis vector's component along the point's canonical normal (the
-    /// latent's normal equations need Bᵢᵀnᵢ); columns over the points.
-    basis_normal: Vec<Vec<f64>>,
 }
 
 impl<'a> SurfelRun<'a> {
@@ -110,13 +102,11 @@ impl<'a> SurfelRun<'a> {
         opts: &'a RegisterOptions,
         norm: &'a Normalization,
     ) -> Self {
-        let (model, normals) = (&level.model, &level.normals);
+        let model = &level.model;
         let m = model.len();
         let mut estep = x.estep();
         estep.use_model_order(model.block_order(), m);
         estep.cutoff_sigmas = CUTOFF_SIGMAS;
-        let basis_normal =
-            model.basis.iter().map(|b| b.iter().zip(normals).map(|(v, n)| dot(v, n)).collect()).collect();
         Self {
             level,
             view,
@@ -132,7 +122,6 @@ impl<'a> SurfelRun<'a> {
             weights: Vec::new(),
             has_weights: false,
             contact: Vec::new(),
-            basis_normal,
         }
     }
 }
@@ -179,17 +168,8 @@ impl EmMap for SurfelRun<'_> {
                 let (g, e) = sp.latent_row(&level.step, pose, &self.contact, target);
                 (g, e, k)
             });
-            if let Some(l) = latent_step(
-                &level.step,
-                &self.basis_normal,
-                &level.normals,
-                post,
-                pose,
-                (a, b),
-                row.as_ref().map(|(g, e, k)| (g.as_slice(), *e, *k)),
-                PRIOR_SCALE * opts.latent_prior_weight,
-                var,
-            ) {
+            let row = row.as_ref().map(|(g, e, k)| (g.as_slice(), *e, *k));
+            if let Some(l) = latent_step(level, post, pose, (a, b), row, PRIOR_SCALE * opts.latent_prior_weight, var) {
                 st.latent = l;
             }
         }
@@ -439,11 +419,8 @@ fn jt(u: &Vector3<f64>, v: &Vector3<f64>) -> V7 {
 /// The MAP latent at this pose, in the model frame (where Λ's normal is the
 /// canonical one): (s² Σ P1 BᵀΛB + w Σ⁻¹) ℓ = s² Σ P1 BᵀΛ(z − base), with
 /// z = Rᵀ(x̄ − t)/s and BᵀΛB = a BᵀB + b (Bᵀn)(Bᵀn)ᵀ.
-#[allow(clippy::too_many_arguments)]
 fn latent_step(
-    step: &super::LatentStep,
-    basis_normal: &[Vec<f64>],
-    normals: &[P3],
+    level: &LatentLevel,
     post: &Posteriors,
     pose: &super::Pose,
     (a, b): (f64, f64),
@@ -451,39 +428,18 @@ fn latent_step(
     prior_weight: f64,
     var: &[f64],
 ) -> Option<Vec<f64>> {
-    let q = step.q;
-    if q == 0 {
+    let step = &level.step;
+    if step.q == 0 {
         return None;
     }
-    // P1·(z − base) as three columns, and its component along each normal.
-    let r = step.residuals(post, pose);
-    let rn: Vec<f64> = normals.iter().enumerate().map(|(i, n)| dot(&[r[0][i], r[1][i], r[2][i]], n)).collect();
     let s2 = pose.s * pose.s;
-    let weighted_bn: Vec<Vec<f64>> =
-        basis_normal.iter().map(|c| c.iter().zip(&post.p1).map(|(v, p)| v * p).collect()).collect();
-    let mut am = Mat::<f64>::zeros(q, q);
-    let mut bv = Mat::<f64>::zeros(q, 1);
-    let mut e = 0;
-    for j in 0..q {
-        let bt: f64 = (0..3).map(|d| dot_slices(&step.basis[j][d], &r[d])).sum();
-        bv[(j, 0)] = s2 * (a * bt + b * dot_slices(&basis_normal[j], &rn));
-        for k in j..q {
-            let v = s2 * (a * dot_slices(&step.gram[e], &post.p1) + b * dot_slices(&weighted_bn[j], &basis_normal[k]));
-            am[(j, k)] = v;
-            am[(k, j)] = v;
-            e += 1;
-        }
-        am[(j, j)] += prior_weight / var[j];
-    }
+    let sums = step.sums(post, pose, Some(&level.normals));
+    let (mut am, mut bv) = sums.system(step.q, (a, b, s2), prior_weight, var);
     // The support's rank-one term (`Support::latent_row`), at K·s² like the data's.
     if let Some((gv, e, k)) = support {
         add_support_term(&mut am, &mut bv, gv, e, k * s2);
     }
-    let sol = am.llt(Side::Lower).ok().map(|l| l.solve(&bv));
-    clear_upper_state();
-    let sol = sol?;
-    let out: Vec<f64> = (0..q).map(|j| sol[(j, 0)]).collect();
-    out.iter().all(|v| v.is_finite()).then_some(out)
+    solve(am, bv)
 }
 
 #[cfg(test)]
