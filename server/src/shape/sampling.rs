@@ -287,6 +287,11 @@ struct VoxelGrid {
     lo: P3,
     hi: P3,
     h: f64,
+    /// 1/h: the cells are found by a product, not a division (a division
+    /// each coordinate, these grids were 3 % of a mug registration; a
+    /// product and a quotient fall in different cells only for a point
+    /// within a rounding of a cell's face).
+    inv_h: f64,
 }
 
 impl VoxelGrid {
@@ -312,7 +317,8 @@ impl VoxelGrid {
         let mut faces =
             [(hi[0] - lo[0]) * (hi[1] - lo[1]), (hi[1] - lo[1]) * (hi[2] - lo[2]), (hi[0] - lo[0]) * (hi[2] - lo[2])];
         faces.sort_by(f64::total_cmp);
-        let mut grid = Self { lo, hi, h: (faces[2].max(1e-12) / cells.max(1) as f64).sqrt().max(1e-9) };
+        let h = (faces[2].max(1e-12) / cells.max(1) as f64).sqrt().max(1e-9);
+        let mut grid = Self { lo, hi, h, inv_h: 1.0 / h };
         for _ in 0..6 {
             let mut occupied = Cells::<()>::for_grid(&grid, probe.len());
             for p in &probe {
@@ -323,6 +329,7 @@ impl VoxelGrid {
                 break;
             }
             grid.h *= ratio.sqrt();
+            grid.inv_h = 1.0 / grid.h;
         }
         grid
     }
@@ -337,7 +344,7 @@ impl VoxelGrid {
     /// takes a compare and two more; the same value for every input.)
     #[inline]
     fn cell(&self, p: &P3, k: usize) -> u64 {
-        (((p[k] - self.lo[k]) / self.h) as i64).clamp(0, Self::MAX_CELL as i64) as u64
+        (((p[k] - self.lo[k]) * self.inv_h) as i64).clamp(0, Self::MAX_CELL as i64) as u64
     }
 
     /// Cells along each axis of the box: every point within it has a key within these.
