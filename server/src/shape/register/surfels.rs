@@ -317,7 +317,6 @@ fn pose_sums_lanes(post: &Posteriors, y: &[P3], normals: &[P3], pose: &super::Po
     /// The upper triangle of a 7×7 matrix, row by row.
     const UPPER: usize = 28;
     let (rm, s, t) = (&pose.r, pose.s, &pose.t);
-    let rot = |v: [f64; 3], d: usize| rm[(d, 0)] * v[0] + rm[(d, 1)] * v[1] + rm[(d, 2)] * v[2];
     let (mut hn, mut g) = ([[0.0; W]; UPPER], [[0.0; W]; 7]);
     let (mut sp, mut su, mut suu, mut sq) = ([0.0; W], [[0.0; W]; 3], [[0.0; W]; 6], [0.0; W]);
     let m = post.p1.len().min(post.px.len()).min(y.len()).min(normals.len());
@@ -348,33 +347,55 @@ fn pose_sums_lanes(post: &Posteriors, y: &[P3], normals: &[P3], pose: &super::Po
         let yl: [[f64; W]; 3] = std::array::from_fn(|d| std::array::from_fn(|l| yc[l][d]));
         let nl: [[f64; W]; 3] = std::array::from_fn(|d| std::array::from_fn(|l| nc[l][d]));
         let xl: [[f64; W]; 3] = std::array::from_fn(|d| std::array::from_fn(|l| px[l][d]));
+        // Each quantity a loop over the lanes of its own: with every point's
+        // whole computation in one loop body, whether LLVM vectorised it
+        // depended on unrelated code elsewhere in the crate (the same source
+        // compiled to scalar code after a change to `cpd`, 3 × slower).
+        let (mut u, mut n, mut r) = ([[0.0; W]; 3], [[0.0; W]; 3], [[0.0; W]; 3]);
+        for d in 0..3 {
+            let row = [rm[(d, 0)], rm[(d, 1)], rm[(d, 2)]];
+            for l in 0..W {
+                u[d][l] = s * (row[0] * yl[0][l] + row[1] * yl[1][l] + row[2] * yl[2][l]);
+                n[d][l] = row[0] * nl[0][l] + row[1] * nl[1][l] + row[2] * nl[2][l];
+            }
+        }
+        for d in 0..3 {
+            for l in 0..W {
+                r[d][l] = xl[d][l] / div[l] - u[d][l] - t[d];
+            }
+        }
+        let (jn, jr) = (jt_lanes(&u, &n), jt_lanes(&u, &r));
+        let pb: [f64; W] = std::array::from_fn(|l| p[l] * b);
+        let mut e = 0;
+        for j in 0..7 {
+            for k in j..7 {
+                for l in 0..W {
+                    hn[e][l] += pb[l] * jn[j][l] * jn[k][l];
+                }
+                e += 1;
+            }
+        }
+        let bnr: [f64; W] = std::array::from_fn(|l| b * (n[0][l] * r[0][l] + n[1][l] * r[1][l] + n[2][l] * r[2][l]));
+        for j in 0..7 {
+            for l in 0..W {
+                g[j][l] += p[l] * (a * jr[j][l] + bnr[l] * jn[j][l]);
+            }
+        }
         for l in 0..W {
-            let u = [0, 1, 2].map(|d| s * rot([yl[0][l], yl[1][l], yl[2][l]], d));
-            let n = [0, 1, 2].map(|d| rot([nl[0][l], nl[1][l], nl[2][l]], d));
-            let r = [0, 1, 2].map(|d| xl[d][l] / div[l] - u[d] - t[d]);
-            let (jn, jr) = (jt_lanes(&u, &n), jt_lanes(&u, &r));
-            let pb = p[l] * b;
-            let mut e = 0;
-            for j in 0..7 {
-                for k in j..7 {
-                    hn[e][l] += pb * jn[j] * jn[k];
-                    e += 1;
-                }
-            }
-            let bnr = b * (n[0] * r[0] + n[1] * r[1] + n[2] * r[2]);
-            for j in 0..7 {
-                g[j][l] += p[l] * (a * jr[j] + bnr * jn[j]);
-            }
             sp[l] += p[l];
-            let mut e = 0;
-            for j in 0..3 {
-                su[j][l] += p[l] * u[j];
-                for k in j..3 {
-                    suu[e][l] += p[l] * u[j] * u[k];
-                    e += 1;
-                }
+            sq[l] += p[l] * (u[0][l] * u[0][l] + u[1][l] * u[1][l] + u[2][l] * u[2][l]);
+        }
+        let mut e = 0;
+        for j in 0..3 {
+            for l in 0..W {
+                su[j][l] += p[l] * u[j][l];
             }
-            sq[l] += p[l] * (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+            for k in j..3 {
+                for l in 0..W {
+                    suu[e][l] += p[l] * u[j][l] * u[k][l];
+                }
+                e += 1;
+            }
         }
     }
     let total = |v: &[f64; W]| v.iter().sum::<f64>();
@@ -403,11 +424,20 @@ fn pose_sums_lanes(post: &Posteriors, y: &[P3], normals: &[P3], pose: &super::Po
     }
 }
 
-/// [`jt`] on plain arrays.
+/// [`jt`] lane by lane.
 #[inline(always)]
-fn jt_lanes(u: &[f64; 3], v: &[f64; 3]) -> [f64; 7] {
-    let c = [v[1] * u[2] - v[2] * u[1], v[2] * u[0] - v[0] * u[2], v[0] * u[1] - v[1] * u[0]];
-    [c[0], c[1], c[2], -(u[0] * v[0] + u[1] * v[1] + u[2] * v[2]), -v[0], -v[1], -v[2]]
+fn jt_lanes<const W: usize>(u: &[[f64; W]; 3], v: &[[f64; W]; 3]) -> [[f64; W]; 7] {
+    let mut out = [[0.0; W]; 7];
+    for l in 0..W {
+        out[0][l] = v[1][l] * u[2][l] - v[2][l] * u[1][l];
+        out[1][l] = v[2][l] * u[0][l] - v[0][l] * u[2][l];
+        out[2][l] = v[0][l] * u[1][l] - v[1][l] * u[0][l];
+        out[3][l] = -(u[0][l] * v[0][l] + u[1][l] * v[1][l] + u[2][l] * v[2][l]);
+        for d in 0..3 {
+            out[4 + d][l] = -v[d][l];
+        }
+    }
+    out
 }
 
 /// Jᵀv for J = [ [u]× | −u | −I ]: (v × u, −u·v, −v).
