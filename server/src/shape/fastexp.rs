@@ -61,22 +61,21 @@ pub fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
 /// with view weights ran 5× slower from that alone).
 pub const EXP2_CUT_F32: f32 = -60.0 * std::f32::consts::LOG2_E;
 
-/// Coefficients of 2^f = e^{f·ln2} for |f| ≤ 1/2, highest first: the degree-6
-/// series of e^g (truncation error 1.2e-7 on |g| ≤ ln2/2, at f32's own
-/// rounding) with the powers of ln2 folded in, so the vector kernels spend
-/// no multiplication turning base 2 into base e.
-pub const EXP2_SERIES_F32: [f32; 7] = {
-    const L: f32 = std::f32::consts::LN_2;
-    [
-        L * L * L * L * L * L / 720.0,
-        L * L * L * L * L / 120.0,
-        L * L * L * L / 24.0,
-        L * L * L / 6.0,
-        L * L / 2.0,
-        L,
-        1.0,
-    ]
-};
+/// Coefficients of 2^f for |f| ≤ 1/2, highest first: a degree-5 polynomial
+/// fitted for the least largest relative error with its constant held at 1
+/// (9·10⁻⁸ in exact arithmetic, 1.9·10⁻⁷ evaluated in f32, f32's own
+/// rounding). It replaced the degree-6 series of e^{f·ln2} (2.3·10⁻⁷ in
+/// f32): one fused multiply-add fewer for each pair of an E-step, the same
+/// precision. The fit: iteratively reweighted least squares on 40,000
+/// points of the interval (a discrete Remez exchange), in numpy.
+pub const EXP2_SERIES_F32: [f32; 6] = [
+    0.001_326_468_2,
+    0.009_671_501,
+    0.055_507_336,
+    0.240_222_42,
+    0.693_147,
+    1.0,
+];
 
 /// 2^t for t ≤ 0 in single precision (relative error below 1e-5, from f32
 /// rounding of the argument at large |t|; 1e-7 near 0), exactly 0 below
