@@ -1,6 +1,6 @@
 //! The EM the stages share (CPD's E-step against the posed, deformed
 //! model; an M-step of pose and scale in closed form, then the latent's MAP
-//! update), its SQUAREM acceleration, and what a fit is given: the pose, the
+//! update from `latent`'s normal equations), its SQUAREM acceleration, and what a fit is given: the pose, the
 //! view's visibility weights and the table's support.
 
 use super::latent::{add_support_term, solve, LatentStep};

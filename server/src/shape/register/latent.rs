@@ -96,8 +96,7 @@ impl LatentStep {
             let (p1s, pxs) = (&post.p1[..m], &post.px[..m]);
             let base = self.base.each_ref().map(|b| &b[..m]);
             let [r0, r1, r2] = &mut r;
-            let out = [&mut r0[..m], &mut r1[..m], &mut r2[..m]];
-            let [o0, o1, o2] = out;
+            let (o0, o1, o2) = (&mut r0[..m], &mut r1[..m], &mut r2[..m]);
             for i in 0..m {
                 let (p, px) = (p1s[i], pxs[i]);
                 let v =
