@@ -293,6 +293,12 @@ pub fn best_rotation(a: &Matrix3<f64>) -> Matrix3<f64> {
             }
         }
     }
+    svd_rotation(a)
+}
+
+/// The rotation R maximising tr(AᵀR) from A's SVD U S Vᵀ: U Vᵀ, its last
+/// singular direction flipped where that would reflect.
+fn svd_rotation(a: &Matrix3<f64>) -> Matrix3<f64> {
     let svd = a.svd(true, true);
     let (u, vt) = (svd.u.unwrap_or_else(Matrix3::identity), svd.v_t.unwrap_or_else(Matrix3::identity));
     let d = (u * vt).determinant().signum();
@@ -666,12 +672,6 @@ mod tests {
     /// tr(AᵀR) no lower.
     #[test]
     fn best_rotation_is_the_svds_proper_rotation() {
-        let svd_rotation = |a: &Matrix3<f64>| {
-            let svd = a.svd(true, true);
-            let (u, vt) = (svd.u.unwrap(), svd.v_t.unwrap());
-            let d = (u * vt).determinant().signum();
-            u * Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, d)) * vt
-        };
         let mut r = rand_chacha::ChaCha8Rng::seed_from_u64(9);
         let mut cases: Vec<Matrix3<f64>> = (0..300)
             .map(|_| Matrix3::from_fn(|_, _| r.random_range(-1.0..1.0)) * 10f64.powi(r.random_range(-4..3)))

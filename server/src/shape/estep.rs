@@ -884,14 +884,19 @@ fn invert_row_totals(den: &mut [f32], c: f64, pt1: &mut [f64]) -> LogSum {
 /// kept in [1, 2) by exact halvings; the one rounding per factor is the
 /// product's. A factor that is zero, subnormal, infinite or NaN is taken
 /// as its own logarithm.
-#[derive(Default)]
 struct LogSum {
     /// Σ of the binary exponents taken out.
     exponents: i64,
-    /// The running product of mantissas, in [1, 2) (0: none yet).
+    /// The running product of mantissas, in [1, 2).
     mantissa: f64,
     /// Logarithms of the factors outside the normal range.
     rest: f64,
+}
+
+impl Default for LogSum {
+    fn default() -> Self {
+        Self { exponents: 0, mantissa: 1.0, rest: 0.0 }
+    }
 }
 
 impl LogSum {
@@ -908,14 +913,13 @@ impl LogSum {
         }
         self.exponents += (field >> 52) as i64 - 1023;
         let m = f64::from_bits((bits & !Self::EXPONENT_BITS) | Self::ONE_BITS);
-        let p = if self.mantissa == 0.0 { m } else { self.mantissa * m };
+        let p = self.mantissa * m;
         // p < 4: halving is exact.
         (self.mantissa, self.exponents) = if p >= 2.0 { (0.5 * p, self.exponents + 1) } else { (p, self.exponents) };
     }
 
     fn total(&self) -> f64 {
-        let mantissa = if self.mantissa == 0.0 { 0.0 } else { self.mantissa.ln() };
-        self.rest + mantissa + self.exponents as f64 * std::f64::consts::LN_2
+        self.rest + self.mantissa.ln() + self.exponents as f64 * std::f64::consts::LN_2
     }
 }
 
