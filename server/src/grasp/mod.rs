@@ -149,6 +149,9 @@ pub struct SolveReport {
     pub iterations: usize,
     /// Starts run (the solver stops early once a start fits exactly).
     pub starts: usize,
+    /// Starts of those stopped early, stalled far above the best cost
+    /// (`SolveOptions::abandon_factor`).
+    pub abandoned_starts: usize,
     /// Which start gave the returned grasp (0: the caller's warm start).
     pub best_start: usize,
     /// Whether the best start met a convergence test (not the iteration cap).
