@@ -242,6 +242,7 @@ pub fn run_retarget(a: RetargetArgs) -> CliResult {
         v["elapsed_ms"] = serde_json::json!(elapsed_ms);
         v["iterations"] = serde_json::json!(report.iterations);
         v["starts"] = serde_json::json!(report.starts);
+        v["abandoned_starts"] = serde_json::json!(report.abandoned_starts);
         v["converged"] = serde_json::json!(report.converged);
         results.push(v);
     }
@@ -386,7 +387,12 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
             "wp": {"task_space_distance_cm": out.wp.task_space_distance_cm},
         },
         "table_z": table_z,
-        "solver": {"iterations": out.report.iterations, "starts": out.report.starts, "converged": out.report.converged},
+        "solver": {
+            "iterations": out.report.iterations,
+            "starts": out.report.starts,
+            "abandoned_starts": out.report.abandoned_starts,
+            "converged": out.report.converged,
+        },
         "elapsed_ms": total_ms,
         "stage_ms": {
             "load_space": load_ms,

@@ -231,8 +231,11 @@ fn grid(half: f64, step: f64) -> impl Iterator<Item = f64> {
     (0..=n).map(move |k| if n == 0 { 0.0 } else { -half + 2.0 * half * k as f64 / n as f64 })
 }
 
+#[derive(Clone)]
 struct Part {
     mesh: parry3d::shape::TriMesh,
+    /// The tool mesh's index of each of the part's vertices.
+    vertex_ids: Vec<u32>,
     /// Tool-frame bounding box, for culling far queries.
     lo: Vector3<f64>,
     hi: Vector3<f64>,
@@ -241,9 +244,26 @@ struct Part {
     max_depth: f64,
 }
 
+impl Part {
+    fn set_box(&mut self, vertices_tool: &[Point3<f64>]) {
+        let (mut lo, mut hi) = (Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY));
+        for &i in &self.vertex_ids {
+            let p = vertices_tool[i as usize].coords;
+            lo = lo.inf(&p);
+            hi = hi.sup(&p);
+        }
+        (self.lo, self.hi, self.max_depth) = (lo, hi, 0.5 * (hi - lo).min());
+    }
+}
+
+fn to_parry(p: &Point3<f64>) -> parry3d::math::Vector {
+    parry3d::math::Vector::new(p.x as f32, p.y as f32, p.z as f32)
+}
+
 /// The registered tool as a solid: a watertight triangle mesh in its own
 /// frame, placed in the world by `pose_world`. Parts of a multi-part mesh
 /// (a mug and its handle) are separate solids; the tool is their union.
+#[derive(Clone)]
 pub struct ToolCollider {
     parts: Vec<Part>,
     pose_world: Isometry3<f64>,
@@ -285,26 +305,58 @@ impl ToolCollider {
         let mut parts = Vec::new();
         for range in mesh_tool.part_ranges() {
             let mut remap = std::collections::HashMap::new();
-            let (mut vertices, mut indices) = (Vec::new(), Vec::new());
-            let (mut lo, mut hi) = (Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY));
+            let (mut vertex_ids, mut indices) = (Vec::new(), Vec::new());
             for t in &mesh_tool.triangles[range] {
                 let mut out = [0u32; 3];
                 for k in 0..3 {
                     out[k] = *remap.entry(t[k]).or_insert_with(|| {
-                        let p = mesh_tool.vertices[t[k] as usize].coords;
-                        lo = lo.inf(&p);
-                        hi = hi.sup(&p);
-                        vertices.push(parry3d::math::Vector::new(p.x as f32, p.y as f32, p.z as f32));
-                        (vertices.len() - 1) as u32
+                        vertex_ids.push(t[k]);
+                        (vertex_ids.len() - 1) as u32
                     });
                 }
                 indices.push(out);
             }
+            let vertices = vertex_ids.iter().map(|&i| to_parry(&mesh_tool.vertices[i as usize])).collect();
             let mesh = parry3d::shape::TriMesh::with_flags(vertices, indices, TriMeshFlags::ORIENTED)
                 .map_err(|e| bad(format!("parry refused a part: {e:?}")))?;
-            parts.push(Part { mesh, lo, hi, max_depth: 0.5 * (hi - lo).min() });
+            let mut part = Part { mesh, vertex_ids, lo: Vector3::zeros(), hi: Vector3::zeros(), max_depth: 0.0 };
+            part.set_box(&mesh_tool.vertices);
+            parts.push(part);
         }
         Ok(Self { parts, pose_world })
+    }
+
+    /// This tool with its vertices moved to `vertices_tool` (the same mesh's
+    /// vertices, in order, e.g. the canonical mesh carried through a latent
+    /// shape) and placed by `pose_world`. The topology is this tool's, checked
+    /// when it was made: each part's bounding-volume tree is refitted and its
+    /// pseudo-normals recomputed, instead of building both from scratch (the
+    /// mug's 4,064 triangles: building took most of a Grasp's 3 ms transfer
+    /// stage, `bench_grasp`).
+    pub fn deformed(&self, vertices_tool: &[Point3<f64>], pose_world: Isometry3<f64>) -> Result<Self, GraspError> {
+        let bad = |reason: String| GraspError::BadToolMesh { reason };
+        let needed = self.parts.iter().flat_map(|p| p.vertex_ids.iter()).map(|&i| i as usize + 1).max().unwrap_or(0);
+        if vertices_tool.len() < needed {
+            return Err(bad(format!("{} vertices; the tool's triangles index {needed}", vertices_tool.len())));
+        }
+        if !vertices_tool.iter().all(|p| p.coords.iter().all(|v| v.is_finite())) {
+            return Err(bad("a vertex is not finite".into()));
+        }
+        if !pose_world.to_homogeneous().iter().all(|v| v.is_finite()) {
+            return Err(GraspError::NonFinite { what: "tool pose" });
+        }
+        let mut out = self.clone();
+        out.pose_world = pose_world;
+        for part in &mut out.parts {
+            let ids = &part.vertex_ids;
+            part.mesh.update_vertices(|v| {
+                for (v, &i) in v.iter_mut().zip(ids) {
+                    *v = to_parry(&vertices_tool[i as usize]);
+                }
+            });
+            part.set_box(vertices_tool);
+        }
+        Ok(out)
     }
 
     pub fn pose_world(&self) -> &Isometry3<f64> {

@@ -364,6 +364,39 @@ fn tool_signed_distance_matches_a_box() {
     assert!(tool.signed_distance(&(pose * Point3::new(1.0, 0.0, 0.0)), 0.1).is_none());
 }
 
+/// A collider deformed in place (its tree refitted, not rebuilt) measures
+/// what one built from the moved vertices does; what it is given is checked.
+#[test]
+fn a_deformed_tool_measures_as_one_built_anew() {
+    let canonical = cylinder_x_mesh(0.025, 0.07, 32);
+    let base = ToolCollider::new(&canonical, Isometry3::identity()).unwrap();
+    // A smooth non-rigid change: stretched along the axis, bulged and bent.
+    let moved: Vec<Point3<f64>> = canonical
+        .vertices
+        .iter()
+        .map(|p| Point3::new(1.3 * p.x, p.y * (1.0 + 4.0 * p.x * p.x), p.z * 0.8 + 3.0 * p.x * p.x))
+        .collect();
+    let pose =
+        Isometry3::from_parts(Translation3::new(0.1, 0.2, -0.1), UnitQuaternion::from_euler_angles(0.2, 0.5, -1.0));
+    let deformed = base.deformed(&moved, pose).unwrap();
+    let fresh = ToolCollider::new(&TriMesh { vertices: moved.clone(), ..canonical.clone() }, pose).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    for _ in 0..500 {
+        let local = Vector3::from_fn(|i, _| rng.random_range(-1.5..1.5) * [0.1, 0.04, 0.04][i]);
+        let p = pose * Point3::from(local);
+        let (a, ga) = deformed.signed_distance(&p, f64::INFINITY).unwrap();
+        let (b, gb) = fresh.signed_distance(&p, f64::INFINITY).unwrap();
+        assert!((a - b).abs() < 1e-7 && (ga - gb).norm() < 1e-5, "{local:?}: {a} vs {b}");
+    }
+    // The base is left as it was.
+    let (sd, _) = base.signed_distance(&Point3::new(0.0, 0.0, 0.03), f64::INFINITY).unwrap();
+    assert!((sd - 0.005).abs() < 2e-4, "{sd}");
+    assert!(matches!(base.deformed(&moved[1..], pose), Err(GraspError::BadToolMesh { .. })));
+    let mut nan = moved.clone();
+    nan[3].y = f64::NAN;
+    assert!(matches!(base.deformed(&nan, pose), Err(GraspError::BadToolMesh { .. })));
+}
+
 /// The grasp around a cylinder: fingers closed on it, thumb opposed, and a
 /// cylinder (axis x) placed in the hand so that this configuration pierces it
 /// by `depth_m` at its deepest sphere. Returns (grasp, tool mesh, tool pose).

@@ -92,6 +92,9 @@ pub struct TransferModel {
     vertices: AnchoredModel,
     triangles: Vec<[u32; 3]>,
     parts: Vec<std::ops::Range<usize>>,
+    /// The canonical tool as a solid, checked closed once; each transferred
+    /// tool is this with its vertices moved ([`ToolCollider::deformed`]).
+    collider: Result<ToolCollider, String>,
 }
 
 impl TransferModel {
@@ -103,6 +106,7 @@ impl TransferModel {
             vertices: space.anchored_model(&points(&canonical_mesh.vertices)),
             triangles: canonical_mesh.triangles.clone(),
             parts: canonical_mesh.parts.clone(),
+            collider: ToolCollider::new(canonical_mesh, Isometry3::identity()).map_err(|e| e.to_string()),
         }
     }
 
@@ -167,7 +171,11 @@ impl TransferredTool {
             triangles: model.triangles.clone(),
             parts: model.parts.clone(),
         };
-        let collider = ToolCollider::new(&mesh, Isometry3::identity())?;
+        let canonical = model
+            .collider
+            .as_ref()
+            .map_err(|e| GraspError::BadToolMesh { reason: format!("the canonical tool: {e}") })?;
+        let collider = canonical.deformed(&mesh.vertices, Isometry3::identity())?;
         Ok(Self { pose, targets, mesh, collider, elapsed_ms: 1e3 * t0.elapsed().as_secs_f64() })
     }
 
