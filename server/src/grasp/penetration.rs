@@ -392,16 +392,33 @@ impl ToolCollider {
                 culled = culled.min(outside);
                 continue;
             }
-            let (proj, (tri, _)) = part.mesh.project_local_point_and_get_location(pf, false);
-            let q = Vector3::new(proj.point.x as f64, proj.point.y as f64, proj.point.z as f64);
-            let d = p - q;
-            let dist = d.norm();
             // Inside/outside comes from pseudo-normals, which a deformed
             // (registered) mesh with folded or sliver triangles can get wrong
             // far from the fold. Two facts no solid can break bound that: a
             // point outside the part's box is outside it, and no inside point
             // is deeper than half the box's smallest side.
             let in_box = (p - part.lo).min() >= 0.0 && (part.hi - p).min() >= 0.0;
+            // The tree search bounded by `max_distance` first: it prunes every
+            // node farther than that. A point it finds nothing for is farther
+            // from the surface; outside the box, that settles it (outside,
+            // beyond `max_distance`); inside the box it may lie deep inside
+            // the solid, so the unbounded search decides.
+            let bounded = if max_distance.is_finite() {
+                part.mesh.project_local_point_and_get_location_with_max_dist(pf, false, max_distance as f32)
+            } else {
+                None
+            };
+            let (proj, (tri, _)) = match bounded {
+                Some(hit) => hit,
+                None if !in_box && max_distance.is_finite() => {
+                    culled = culled.min(max_distance);
+                    continue;
+                }
+                None => part.mesh.project_local_point_and_get_location(pf, false),
+            };
+            let q = Vector3::new(proj.point.x as f64, proj.point.y as f64, proj.point.z as f64);
+            let d = p - q;
+            let dist = d.norm();
             let inside = proj.is_inside && in_box && dist <= part.max_depth + 1e-6;
             let sign = if inside { -1.0 } else { 1.0 };
             let grad = if dist > 1e-7 {

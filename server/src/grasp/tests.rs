@@ -362,6 +362,21 @@ fn tool_signed_distance_matches_a_box() {
     }
     // Far points are culled when asked.
     assert!(tool.signed_distance(&(pose * Point3::new(1.0, 0.0, 0.0)), 0.1).is_none());
+    // Deep inside is seen however small the distance asked about.
+    let (sd, _) = tool.signed_distance(&(pose * Point3::new(0.0, 0.0, 0.0)), 0.001).unwrap();
+    assert!((sd + half.min()).abs() < 1e-6, "{sd}");
+    // Beyond the box's cull, the bounded search: a cylinder (radius 25 mm,
+    // axis x) and points off its box's edge, 7 mm from the box.
+    let cylinder = ToolCollider::new(&cylinder_x_mesh(0.025, 0.07, 64), Isometry3::identity()).unwrap();
+    let off_edge = Point3::new(0.0, 0.03, 0.03);
+    let exact = 0.03 * 2f64.sqrt() - 0.025;
+    assert!(cylinder.signed_distance(&off_edge, 0.01).is_none(), "{exact} m away, asked within 0.01");
+    let (sd, _) = cylinder.signed_distance(&off_edge, 0.02).unwrap();
+    assert!((sd - exact).abs() < 2e-4, "{sd} vs {exact}");
+    // Inside the box and outside the solid, farther than asked: measured anyway.
+    let in_corner = Point3::new(0.0, 0.024, 0.024);
+    let (sd, _) = cylinder.signed_distance(&in_corner, 0.005).unwrap();
+    assert!((sd - (0.024 * 2f64.sqrt() - 0.025)).abs() < 2e-4, "{sd}");
 }
 
 /// A collider deformed in place (its tree refitted, not rebuilt) measures
