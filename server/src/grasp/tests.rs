@@ -1101,7 +1101,9 @@ fn clearance_is_the_minimum_over_every_sphere() {
             })
             .fold(f64::INFINITY, f64::min);
         let c = super::penetration::clearance(&spheres, &kin, &scene);
-        assert_eq!(c.min_clearance_m, every, "trial {trial}");
+        // Equal but for ties: a bounded search may settle on another of two
+        // triangles equally near in single precision (1e-11 m apart in double).
+        assert!((c.min_clearance_m - every).abs() < 1e-9, "trial {trial}: {} vs {every}", c.min_clearance_m);
         pruned_touching += (every < 0.0) as usize;
     }
     assert!(pruned_touching > 5 && pruned_touching < 55, "{pruned_touching} of 60 touching: vary the poses");
