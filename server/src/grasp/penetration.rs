@@ -16,8 +16,9 @@
 //! 3 % and 6 %, i.e. ≤ 0.3 mm on a finger, ≤ 0.9 mm on the palm).
 
 use nalgebra::{Isometry3, Point3, Vector3};
+use parry3d::math::VectorExt;
 use parry3d::query::PointQueryWithLocation;
-use parry3d::shape::TriMeshFlags;
+use parry3d::shape::{TriMeshFlags, TrianglePointLocation};
 
 use super::GraspError;
 use crate::geometry::TriMesh;
@@ -234,6 +235,7 @@ fn grid(half: f64, step: f64) -> impl Iterator<Item = f64> {
 #[derive(Clone)]
 struct Part {
     mesh: parry3d::shape::TriMesh,
+    normals: PseudoNormals,
     /// The tool mesh's index of each of the part's vertices.
     vertex_ids: Vec<u32>,
     /// Tool-frame bounding box, for culling far queries.
@@ -253,6 +255,72 @@ impl Part {
             hi = hi.sup(&p);
         }
         (self.lo, self.hi, self.max_depth) = (lo, hi, 0.5 * (hi - lo).min());
+    }
+}
+
+/// The pseudo-normals (Bærentzen and Aanæs) of a closed part, which tell
+/// inside from outside at a closest point: a vertex's is the sum of its
+/// faces' normals weighted by their angles there, an edge's the sum of its
+/// two faces' normals. Computed as parry computes them (the same sums in
+/// the same order, so the same bits), but over index arrays made once per
+/// part, not parry's hash maps at every deformation (a quarter of a Grasp's
+/// transfer stage on the mug).
+#[derive(Clone)]
+struct PseudoNormals {
+    /// Each triangle's edges (its vertices 0-1, 1-2, 2-0) as indices into `edge`.
+    triangle_edges: Vec<[u32; 3]>,
+    vertex: Vec<parry3d::math::Vector>,
+    edge: Vec<parry3d::math::Vector>,
+}
+
+impl PseudoNormals {
+    fn new(indices: &[[u32; 3]]) -> Self {
+        let mut ids = std::collections::HashMap::new();
+        let mut id = |a: u32, b: u32| {
+            let n = ids.len() as u32;
+            *ids.entry((a.min(b), a.max(b))).or_insert(n)
+        };
+        let triangle_edges = indices.iter().map(|t| [id(t[0], t[1]), id(t[1], t[2]), id(t[2], t[0])]).collect();
+        let vertices = indices.iter().flatten().map(|&i| i as usize + 1).max().unwrap_or(0);
+        let zero = parry3d::math::Vector::ZERO;
+        Self { triangle_edges, vertex: vec![zero; vertices], edge: vec![zero; ids.len()] }
+    }
+
+    fn update(&mut self, mesh: &parry3d::shape::TriMesh) {
+        self.vertex.fill(parry3d::math::Vector::ZERO);
+        self.edge.fill(parry3d::math::Vector::ZERO);
+        for (idx, edges) in mesh.indices().iter().zip(&self.triangle_edges) {
+            let v = mesh.vertices();
+            let tri = parry3d::shape::Triangle::new(v[idx[0] as usize], v[idx[1] as usize], v[idx[2] as usize]);
+            if let Some(n) = tri.normal() {
+                let ang1 = (tri.b - tri.a).angle(tri.c - tri.a);
+                let ang2 = (tri.a - tri.b).angle(tri.c - tri.b);
+                let ang3 = (tri.b - tri.c).angle(tri.a - tri.c);
+                self.vertex[idx[0] as usize] += n * ang1;
+                self.vertex[idx[1] as usize] += n * ang2;
+                self.vertex[idx[2] as usize] += n * ang3;
+                for &e in edges {
+                    self.edge[e as usize] += n;
+                }
+            }
+        }
+    }
+
+    /// Whether a point `offset` from its closest point on triangle `tri`
+    /// (at `location`) lies behind the pseudo-normal there: inside.
+    fn inside(
+        &self,
+        mesh: &parry3d::shape::TriMesh,
+        tri: u32,
+        location: &TrianglePointLocation,
+        offset: parry3d::math::Vector,
+    ) -> bool {
+        let normal = match *location {
+            TrianglePointLocation::OnFace(..) | TrianglePointLocation::OnSolid => mesh.triangle(tri).scaled_normal(),
+            TrianglePointLocation::OnEdge(i, _) => self.edge[self.triangle_edges[tri as usize][i as usize] as usize],
+            TrianglePointLocation::OnVertex(i) => self.vertex[mesh.indices()[tri as usize][i as usize] as usize],
+        };
+        offset.dot(normal) <= 0.0
     }
 }
 
@@ -277,7 +345,7 @@ impl std::fmt::Debug for ToolCollider {
 
 impl ToolCollider {
     /// `mesh_tool`: vertices in the tool frame (metres), outward winding,
-    /// every part closed. Inside/outside is decided by parry's pseudo-normals,
+    /// every part closed. Inside/outside is decided by pseudo-normals (`PseudoNormals`),
     /// which need a closed, consistently wound surface; anything else is refused.
     pub fn new(mesh_tool: &TriMesh, pose_world: Isometry3<f64>) -> Result<Self, GraspError> {
         let bad = |reason: String| GraspError::BadToolMesh { reason };
@@ -317,9 +385,12 @@ impl ToolCollider {
                 indices.push(out);
             }
             let vertices = vertex_ids.iter().map(|&i| to_parry(&mesh_tool.vertices[i as usize])).collect();
-            let mesh = parry3d::shape::TriMesh::with_flags(vertices, indices, TriMeshFlags::ORIENTED)
+            let mut normals = PseudoNormals::new(&indices);
+            let mesh = parry3d::shape::TriMesh::with_flags(vertices, indices, TriMeshFlags::empty())
                 .map_err(|e| bad(format!("parry refused a part: {e:?}")))?;
-            let mut part = Part { mesh, vertex_ids, lo: Vector3::zeros(), hi: Vector3::zeros(), max_depth: 0.0 };
+            normals.update(&mesh);
+            let mut part =
+                Part { mesh, normals, vertex_ids, lo: Vector3::zeros(), hi: Vector3::zeros(), max_depth: 0.0 };
             part.set_box(&mesh_tool.vertices);
             parts.push(part);
         }
@@ -354,6 +425,7 @@ impl ToolCollider {
                     *v = to_parry(&vertices_tool[i as usize]);
                 }
             });
+            part.normals.update(&part.mesh);
             part.set_box(vertices_tool);
         }
         Ok(out)
@@ -426,7 +498,7 @@ impl ToolCollider {
             } else {
                 None
             };
-            let (proj, (tri, _)) = match bounded {
+            let (proj, (tri, location)) = match bounded {
                 Some(hit) => hit,
                 None if !in_box && max_distance.is_finite() => {
                     culled = culled.min(max_distance);
@@ -437,7 +509,9 @@ impl ToolCollider {
             let q = Vector3::new(proj.point.x as f64, proj.point.y as f64, proj.point.z as f64);
             let d = p - q;
             let dist = d.norm();
-            let inside = proj.is_inside && in_box && dist <= part.max_depth + 1e-6;
+            let inside = part.normals.inside(&part.mesh, tri, &location, pf - proj.point)
+                && in_box
+                && dist <= part.max_depth + 1e-6;
             let sign = if inside { -1.0 } else { 1.0 };
             let grad = if dist > 1e-7 {
                 d * (sign / dist)
@@ -547,4 +621,50 @@ pub fn clearance_with(
         }
     }
     Clearance { min_clearance_m: min, penetration_m: (-min).max(0.0) }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use parry3d::query::PointQueryWithLocation;
+    use rand::{Rng, SeedableRng};
+
+    /// Our pseudo-normals call inside what parry's oriented mesh calls
+    /// inside, point for point: the canonical mug (two parts, body and
+    /// handle) as built, and carried through a smooth non-rigid change.
+    #[test]
+    fn pseudo_normals_decide_inside_as_parry_does() {
+        let family = crate::tools::family(crate::tools::Category::Mug).unwrap();
+        let mug = &family.iter().find(|i| i.split == crate::tools::Split::Canonical).unwrap().mesh;
+        let base = ToolCollider::new(mug, Isometry3::identity()).unwrap();
+        let bent: Vec<Point3<f64>> = mug
+            .vertices
+            .iter()
+            .map(|p| Point3::new(p.x * (1.0 + 3.0 * p.z), p.y * 1.1, p.z + 2.0 * p.x * p.x))
+            .collect();
+        let deformed = base.deformed(&bent, Isometry3::identity()).unwrap();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6);
+        let (mut inside, mut outside) = (0, 0);
+        for tool in [&base, &deformed] {
+            assert_eq!(tool.parts.len(), 2);
+            for part in &tool.parts {
+                let oriented = parry3d::shape::TriMesh::with_flags(
+                    part.mesh.vertices().to_vec(),
+                    part.mesh.indices().to_vec(),
+                    TriMeshFlags::ORIENTED,
+                )
+                .unwrap();
+                for _ in 0..1500 {
+                    let p =
+                        Vector3::from_fn(|i, _| part.lo[i] + (part.hi[i] - part.lo[i]) * rng.random_range(-0.2..1.2));
+                    let pf = to_parry(&Point3::from(p));
+                    let (proj, (tri, location)) = part.mesh.project_local_point_and_get_location(pf, false);
+                    let (want, _) = oriented.project_local_point_and_get_location(pf, false);
+                    assert_eq!(part.normals.inside(&part.mesh, tri, &location, pf - proj.point), want.is_inside);
+                    *(if want.is_inside { &mut inside } else { &mut outside }) += 1;
+                }
+            }
+        }
+        assert!(inside > 300 && outside > 300, "{inside} inside, {outside} outside: sample the parts better");
+    }
 }
