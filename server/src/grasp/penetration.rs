@@ -138,7 +138,7 @@ impl HandSpheres {
             let cg = kin.link_pose(g.link) * Point3::from(g.center_link);
             let clear = g.reach + margin;
             if let Some(tool) = scene.tool {
-                if bounds.closer_than(k, cg, clear, tool).is_some() {
+                if bounds.may_be_closer_than(k, cg, clear, tool) {
                     for i in g.members.clone() {
                         let c = self.center_world(kin, i);
                         let r = self.spheres[i].radius;
@@ -176,30 +176,33 @@ impl HandSpheres {
 /// the spheres' centres to one tool: the distance last measured at a point,
 /// less how far the centre has moved from it (signed distance is
 /// 1-Lipschitz). An optimiser's small steps leave a sphere a few
-/// millimetres from the tool unqueried for many iterations.
+/// millimetres from the tool unqueried for many iterations. And upper
+/// bounds, the distance measured there plus how far the centre has moved:
+/// a group whose centre is certainly within reach of the tool has its
+/// members measured without measuring the centre again.
 #[derive(Clone, Debug, Default)]
 pub struct DistanceBounds {
-    /// Groups first, then spheres: where the centre was measured, and the
-    /// distance there (NaN: never).
-    at: Vec<(Point3<f64>, f64)>,
+    /// Groups first, then spheres: where the centre was measured, a lower
+    /// bound of the distance there (NaN: never) and an upper one (+∞: none).
+    at: Vec<(Point3<f64>, f64, f64)>,
 }
 
 impl DistanceBounds {
     /// No bounds yet, sized for `spheres`.
     pub fn new(spheres: &HandSpheres) -> Self {
-        Self { at: vec![(Point3::origin(), f64::NAN); spheres.groups.len() + spheres.spheres.len()] }
+        Self { at: vec![(Point3::origin(), f64::NAN, f64::INFINITY); spheres.groups.len() + spheres.spheres.len()] }
     }
 
     /// Forgets every bound (a new tool or pose).
     pub fn clear(&mut self) {
         for a in &mut self.at {
-            a.1 = f64::NAN;
+            (a.1, a.2) = (f64::NAN, f64::INFINITY);
         }
     }
 
     fn fit(&mut self, len: usize) {
         if self.at.len() != len {
-            self.at = vec![(Point3::origin(), f64::NAN); len];
+            self.at = vec![(Point3::origin(), f64::NAN, f64::INFINITY); len];
         }
     }
 
@@ -213,14 +216,25 @@ impl DistanceBounds {
         clear: f64,
         tool: &ToolCollider,
     ) -> Option<(f64, Vector3<f64>)> {
-        let (p, sd) = self.at[k];
+        let (p, sd, _) = self.at[k];
         if !sd.is_nan() && sd - (centre - p).norm() >= clear {
             return None;
         }
         let (measured, culled) = tool.signed_distance_and_bound(&centre, clear + 1e-6);
         let sd = measured.map_or(f64::INFINITY, |(sd, _)| sd);
-        self.at[k] = (centre, sd.min(culled));
+        self.at[k] = (centre, sd.min(culled), sd);
         measured.filter(|&(sd, _)| sd < clear)
+    }
+
+    /// Whether entry `k`'s centre may be under `clear` from the tool: false
+    /// when its lower bound shows it cannot be, true without a query when
+    /// its upper bound shows it is; else measured.
+    fn may_be_closer_than(&mut self, k: usize, centre: Point3<f64>, clear: f64, tool: &ToolCollider) -> bool {
+        let (p, _, upper) = self.at[k];
+        if upper + (centre - p).norm() < clear {
+            return true;
+        }
+        self.closer_than(k, centre, clear, tool).is_some()
     }
 }
 
