@@ -178,6 +178,10 @@ struct StartResult {
 }
 
 /// Iterations between a start's stall checks (`SolveOptions::abandon_factor`).
+/// Every start's cost recorded at every iteration on `bench_grasp`'s 72
+/// views, all run to convergence: checks every 3 or 5 iterations would
+/// have abandoned 2-5 starts that ended within 1 % of the best (a start
+/// can pause before a long descent); every 10, none.
 pub const STALL_WINDOW: usize = 10;
 
 impl GraspSolver {
