@@ -1014,23 +1014,31 @@ fn an_inside_out_part_is_not_inside_far_away() {
     }
 }
 
+/// A category's built-in demonstration, its family, its shape space built
+/// afresh and the demonstration's transfer model on it.
+fn transfer_fixture(
+    category: crate::tools::Category,
+) -> (Demonstration, Vec<crate::tools::Instance>, crate::shape::ShapeSpace, super::transfer::TransferModel) {
+    use crate::tools::Split;
+    let demo = Demonstration::builtin(category).unwrap();
+    let family = crate::tools::family(category).unwrap();
+    let canonical = family.iter().find(|i| i.split == Split::Canonical).unwrap();
+    let (space, _) =
+        crate::shape::builtin::build(category, &crate::shape::builtin::options(category), |_, _| {}).unwrap();
+    let keypoints = demo.keypoints(&sih()).unwrap();
+    let model = super::transfer::TransferModel::new(&space, &keypoints, &canonical.mesh);
+    (demo, family, space, model)
+}
+
 /// A real case: the drill demonstration carried onto a training drill. Its
 /// palm faces slightly down, so backing straight off meets the table; the
 /// search finds a clear pre-grasp whose straight approach keeps clear too.
 #[test]
 fn pregrasp_search_clears_the_table_under_a_drill() {
     use crate::grasp::pregrasp::pregrasp;
-    use crate::grasp::transfer::{solve_transferred, TransferModel, TransferredTool};
-    use crate::tools::{self, Category, Split};
+    use crate::grasp::transfer::{solve_transferred, TransferredTool};
     let hand = sih();
-    let demo = Demonstration::builtin(Category::Drill).unwrap();
-    let family = tools::family(Category::Drill).unwrap();
-    let canonical = family.iter().find(|i| i.split == Split::Canonical).unwrap();
-    let (space, _) =
-        crate::shape::builtin::build(Category::Drill, &crate::shape::builtin::options(Category::Drill), |_, _| {})
-            .unwrap();
-    let keypoints = demo.keypoints(&hand).unwrap();
-    let model = TransferModel::new(&space, &keypoints, &canonical.mesh);
+    let (demo, _, space, model) = transfer_fixture(crate::tools::Category::Drill);
     let tool = TransferredTool::from_latent(&model, &space.train_latents[0]).unwrap();
     let table = Some(tool.lowest_z());
     let mut solver = GraspSolver::new(&hand, SolveOptions::default());
@@ -1187,19 +1195,12 @@ fn a_demonstration_file_with_an_absurd_margin_is_refused() {
 #[test]
 fn stalled_starts_are_abandoned_without_changing_the_grasp() {
     use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene as CameraScene};
-    use crate::grasp::transfer::{solve_transferred, TransferModel, TransferredTool};
+    use crate::grasp::transfer::{solve_transferred, TransferredTool};
     use crate::shape::{RegisterOptions, Registrar};
-    use crate::tools::{self, Category, Split};
     let hand = sih();
-    let demo = Demonstration::builtin(Category::Mug).unwrap();
-    let family = tools::family(Category::Mug).unwrap();
-    let canonical = family.iter().find(|i| i.split == Split::Canonical).unwrap();
-    let (space, _) =
-        crate::shape::builtin::build(Category::Mug, &crate::shape::builtin::options(Category::Mug), |_, _| {}).unwrap();
-    let keypoints = demo.keypoints(&hand).unwrap();
-    let model = TransferModel::new(&space, &keypoints, &canonical.mesh);
+    let (demo, family, space, model) = transfer_fixture(crate::tools::Category::Mug);
     let registrar = Registrar::new(space);
-    let inst = family.iter().find(|i| i.split == Split::Test).unwrap();
+    let inst = family.iter().find(|i| i.split == crate::tools::Split::Test).unwrap();
     let (mut iterations, mut abandoned) = ([0usize; 2], 0);
     for view in 0..4 {
         // The bench's view: the mug turned on the table, the standard camera ring.
