@@ -261,6 +261,11 @@ struct Part {
 }
 
 impl Part {
+    /// How far a tool-frame point lies outside the part's box (0 inside).
+    fn box_distance(&self, p: &Vector3<f64>) -> f64 {
+        (self.lo - p).sup(&(p - self.hi)).sup(&Vector3::zeros()).norm()
+    }
+
     fn set_box(&mut self, vertices_tool: &[Point3<f64>]) {
         let (mut lo, mut hi) = (Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY));
         for &i in &self.vertex_ids {
@@ -468,7 +473,7 @@ impl ToolCollider {
         self.parts
             .iter()
             .map(|part| {
-                let outside = (part.lo - p).sup(&(p - part.hi)).sup(&Vector3::zeros()).norm();
+                let outside = part.box_distance(&p);
                 if outside > 0.0 {
                     outside
                 } else {
@@ -491,7 +496,7 @@ impl ToolCollider {
         let mut best: Option<(f64, Vector3<f64>)> = None;
         let mut culled = f64::INFINITY;
         for part in &self.parts {
-            let outside = (part.lo - p).sup(&(p - part.hi)).sup(&Vector3::zeros()).norm();
+            let outside = part.box_distance(&p);
             if outside > max_distance {
                 culled = culled.min(outside);
                 continue;
