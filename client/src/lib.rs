@@ -163,7 +163,7 @@ pub struct NamedPoint {
 /// A pose: `p_target = R · p_source + t` (with the registration's scale on p_source where stated).
 #[derive(Clone, Debug, Serialize)]
 pub struct Pose {
-    /// "<target>_from_<source>", e.g. "cloud_from_canonical".
+    /// "`<target>_from_<source>`", e.g. "cloud_from_canonical".
     pub frame: String,
     pub translation: [f64; 3],
     pub rotation_xyzw: [f64; 4],
