@@ -391,6 +391,7 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
             "iterations": out.report.iterations,
             "starts": out.report.starts,
             "abandoned_starts": out.report.abandoned_starts,
+            "best_start": out.report.best_start,
             "converged": out.report.converged,
         },
         "elapsed_ms": total_ms,
