@@ -343,6 +343,23 @@ impl PseudoNormals {
     }
 }
 
+/// Every vertex finite, or the error that says not.
+fn check_vertices(vertices: &[Point3<f64>]) -> Result<(), GraspError> {
+    if vertices.iter().all(|p| p.coords.iter().all(|v| v.is_finite())) {
+        Ok(())
+    } else {
+        Err(GraspError::BadToolMesh { reason: "a vertex is not finite".into() })
+    }
+}
+
+fn check_pose(pose_world: &Isometry3<f64>) -> Result<(), GraspError> {
+    if pose_world.to_homogeneous().iter().all(|v| v.is_finite()) {
+        Ok(())
+    } else {
+        Err(GraspError::NonFinite { what: "tool pose" })
+    }
+}
+
 fn to_parry(p: &Point3<f64>) -> parry3d::math::Vector {
     parry3d::math::Vector::new(p.x as f32, p.y as f32, p.z as f32)
 }
@@ -353,6 +370,9 @@ fn to_parry(p: &Point3<f64>) -> parry3d::math::Vector {
 #[derive(Clone)]
 pub struct ToolCollider {
     parts: Vec<Part>,
+    /// How many of the tool mesh's vertices its triangles reach (the most a
+    /// [`Self::deformed`] needs).
+    vertices_used: usize,
     pose_world: Isometry3<f64>,
 }
 
@@ -371,9 +391,7 @@ impl ToolCollider {
         if mesh_tool.triangles.is_empty() {
             return Err(bad("no triangles".into()));
         }
-        if !mesh_tool.vertices.iter().all(|p| p.coords.iter().all(|v| v.is_finite())) {
-            return Err(bad("a vertex is not finite".into()));
-        }
+        check_vertices(&mesh_tool.vertices)?;
         if let Some(t) = mesh_tool.triangles.iter().find(|t| t.iter().any(|&i| i as usize >= mesh_tool.vertices.len()))
         {
             return Err(bad(format!("triangle {t:?} indexes past the {} vertices", mesh_tool.vertices.len())));
@@ -386,9 +404,7 @@ impl ToolCollider {
                 topo.boundary_edges, topo.non_manifold_edges, topo.inconsistent_edges
             )));
         }
-        if !pose_world.to_homogeneous().iter().all(|v| v.is_finite()) {
-            return Err(GraspError::NonFinite { what: "tool pose" });
-        }
+        check_pose(&pose_world)?;
         let mut parts = Vec::new();
         for range in mesh_tool.part_ranges() {
             let mut remap = std::collections::HashMap::new();
@@ -413,7 +429,9 @@ impl ToolCollider {
             part.set_box(&mesh_tool.vertices);
             parts.push(part);
         }
-        Ok(Self { parts, pose_world })
+        let vertices_used =
+            parts.iter().flat_map(|p: &Part| p.vertex_ids.iter()).map(|&i| i as usize + 1).max().unwrap_or(0);
+        Ok(Self { parts, vertices_used, pose_world })
     }
 
     /// This tool with its vertices moved to `vertices_tool` (the same mesh's
@@ -424,17 +442,13 @@ impl ToolCollider {
     /// mug's 4,064 triangles: building took most of a Grasp's 3 ms transfer
     /// stage, `bench_grasp`).
     pub fn deformed(&self, vertices_tool: &[Point3<f64>], pose_world: Isometry3<f64>) -> Result<Self, GraspError> {
-        let bad = |reason: String| GraspError::BadToolMesh { reason };
-        let needed = self.parts.iter().flat_map(|p| p.vertex_ids.iter()).map(|&i| i as usize + 1).max().unwrap_or(0);
-        if vertices_tool.len() < needed {
-            return Err(bad(format!("{} vertices; the tool's triangles index {needed}", vertices_tool.len())));
+        if vertices_tool.len() < self.vertices_used {
+            return Err(GraspError::BadToolMesh {
+                reason: format!("{} vertices; the tool's triangles index {}", vertices_tool.len(), self.vertices_used),
+            });
         }
-        if !vertices_tool.iter().all(|p| p.coords.iter().all(|v| v.is_finite())) {
-            return Err(bad("a vertex is not finite".into()));
-        }
-        if !pose_world.to_homogeneous().iter().all(|v| v.is_finite()) {
-            return Err(GraspError::NonFinite { what: "tool pose" });
-        }
+        check_vertices(vertices_tool)?;
+        check_pose(&pose_world)?;
         let mut out = self.clone();
         out.pose_world = pose_world;
         for part in &mut out.parts {
