@@ -467,8 +467,9 @@ fn trial(
             // Whether the view saw each keypoint's surroundings, and (for the mug:
             // handle_middle about base_centre) how far round from the camera the first lies.
             eprintln!(
-                "   cloud points within 15 mm of each true keypoint {near:?}; keypoint 0 azimuth about the last from the camera's {:.0}°",
-                to_cam.angle(&to_kp).to_degrees()
+                "   cloud points within 15 mm of each true keypoint {near:?}; keypoint 0 azimuth about the last from the camera's {:.0}°; yaw arc open ±{:.1}°",
+                to_cam.angle(&to_kp).to_degrees(),
+                t.arc.as_ref().map_or(0.0, |(h, _)| h.to_degrees())
             );
             eprintln!("   ours per keypoint {:?}  canonical {:?}", t.kp[0].iter().map(|x| (x * 10.0).round() / 10.0).collect::<Vec<_>>(), t.kp[1].iter().map(|x| (x * 10.0).round() / 10.0).collect::<Vec<_>>());
             match t.camera {
