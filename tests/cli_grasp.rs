@@ -337,3 +337,68 @@ fn hand_info_loads_another_hand_and_refuses_a_broken_one() {
     let e = fails(&["hand", "info", "--urdf", u.to_str().unwrap(), "--keypoints", k.to_str().unwrap()]);
     assert!(e.contains("`thumb` is not defined"), "{e}");
 }
+
+/// Another hand (here the bundled one under other names) through the whole
+/// offline path: a demonstration authored with it, checked, and a grasp
+/// solved with it whose joints carry its names; the bundled demonstration,
+/// made with another hand, is refused for it.
+#[test]
+fn another_hand_authors_its_demonstration_and_grasps_with_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let renamed = |from: &str, to: &str| {
+        let text = std::fs::read_to_string(repo().join(from)).unwrap();
+        let text =
+            text.replace("palm_to_if_proximal", "palm_to_index_base").replace("\"sih_right\"", "\"sih_renamed\"");
+        let path = dir.path().join(to);
+        std::fs::write(&path, text).unwrap();
+        path.to_str().unwrap().to_owned()
+    };
+    let urdf = renamed("assets/hands/sih_right/sih_right.urdf", "hand.urdf");
+    let keypoints = renamed("assets/hands/sih_right/keypoints.json", "keypoints.json");
+    let hand = ["--hand-urdf", urdf.as_str(), "--hand-keypoints", keypoints.as_str()];
+    let info = json(&[&["hand", "info", "--json"][..], &hand].concat());
+    assert_eq!(info["name"], "sih_renamed", "{info}");
+
+    let bundled: Value =
+        serde_json::from_str(&std::fs::read_to_string(repo().join("assets/demos/mug.json")).unwrap()).unwrap();
+    let p = &bundled["wrist_pose_tool"];
+    let wrist: Vec<String> = p["translation"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .chain(p["rotation_xyzw"].as_array().unwrap())
+        .map(|x| format!("{}", f(x)))
+        .collect();
+    let demo = dir.path().join("mug.json");
+    let demo = demo.to_str().unwrap();
+    let wrist = wrist.join(" ");
+    let authored = json(
+        &[&["demo", "author", "--category", "mug", "--wrist", &wrist, "--out", demo, "--json"][..], &hand].concat(),
+    );
+    assert_eq!(authored["ok"], true, "{authored}");
+    let file: Value = serde_json::from_str(&std::fs::read_to_string(demo).unwrap()).unwrap();
+    assert_eq!(file["hand"], "sih_renamed");
+    assert!(file["actuated"]["palm_to_index_base"].is_number(), "{file}");
+    assert_eq!(json(&[&["demo", "check", "--file", demo, "--json"][..], &hand].concat())["ok"], true);
+
+    let cloud = dir.path().join("view.ply");
+    let mesh = repo().join("assets/tools/mug/mug_test_00.obj");
+    json(&[
+        "cloud",
+        "--mesh",
+        mesh.to_str().unwrap(),
+        "--view",
+        "0",
+        "--seed",
+        "1",
+        "--out",
+        cloud.to_str().unwrap(),
+        "--json",
+    ]);
+    let cloud = cloud.to_str().unwrap();
+    let g = json(&[&["grasp", "--category", "mug", "--cloud", cloud, "--demo", demo, "--json"][..], &hand].concat());
+    assert!(g["grasp"]["actuated"]["palm_to_index_base"].is_number(), "{}", g["grasp"]);
+    assert!(g["grasp"]["actuated"].get("palm_to_if_proximal").is_none());
+    let e = fails(&[&["grasp", "--category", "mug", "--cloud", cloud][..], &hand].concat());
+    assert!(e.contains("made with hand `sih_right`, not `sih_renamed`"), "{e}");
+}

@@ -644,6 +644,60 @@ fn polling_mode_serves_spinning_and_event_clients() {
     }
 }
 
+/// A daemon configured with another hand and its demonstration (here the
+/// bundled hand under other names) solves Grasp for that hand: the CLI's
+/// grasp of the bundled hand on the same view, its joints under the
+/// configured names. A configured demonstration that is not there, or was
+/// made with another hand, stops the start with the reason.
+#[test]
+fn a_configured_hand_serves_grasp_under_its_own_names() {
+    let f = fixture();
+    let dir = tempfile::tempdir().unwrap();
+    let assets = Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets");
+    let renamed = |from: &str, to: &str| {
+        let text = std::fs::read_to_string(assets.join(from)).unwrap();
+        let text =
+            text.replace("palm_to_if_proximal", "palm_to_index_base").replace("\"sih_right\"", "\"sih_renamed\"");
+        let path = dir.path().join(to);
+        std::fs::write(&path, text).unwrap();
+        path.to_str().unwrap().to_owned()
+    };
+    let urdf = renamed("hands/sih_right/sih_right.urdf", "hand.urdf");
+    let keypoints = renamed("hands/sih_right/keypoints.json", "keypoints.json");
+    let demo = renamed("demos/mug.json", "mug.json");
+    let hand = format!("hand_urdf = \"{urdf}\"\nhand_keypoints = \"{keypoints}\"\n");
+    let d = Daemon::start("hand", &format!("{hand}[demos]\nmug = \"{demo}\""));
+    let g = d.client().grasp("mug", &f.views[0].1, TIMEOUT).unwrap();
+    let expected = &f.grasp["grasp"];
+    assert_eq!(g.grasp.wrist_pose.translation.to_vec(), floats(&expected["wrist_pose"]["translation"]));
+    let names: Vec<&str> = g.grasp.actuated.iter().map(|(n, _)| n.as_str()).collect();
+    assert!(names.contains(&"palm_to_index_base") && !names.contains(&"palm_to_if_proximal"), "{names:?}");
+    for (name, q) in &g.grasp.actuated {
+        let bundled = if name == "palm_to_index_base" { "palm_to_if_proximal" } else { name.as_str() };
+        assert_eq!(*q, expected["actuated"][bundled].as_f64().unwrap(), "{name}");
+    }
+    drop(d);
+    for (demo, needle) in [
+        (dir.path().join("missing.json").to_str().unwrap().to_owned(), "missing.json"),
+        (assets.join("demos/mug.json").to_str().unwrap().to_owned(), "made with hand `sih_right`"),
+    ] {
+        let cfg = dir.path().join("bad.toml");
+        let text = format!(
+            "service_prefix = \"{}\"\ncategories = [\"mug\"]\n{hand}[demos]\nmug = \"{demo}\"\n",
+            unique_prefix("badhand")
+        );
+        std::fs::write(&cfg, text).unwrap();
+        let out = Command::new(GRASPD)
+            .args(["serve", "--config", cfg.to_str().unwrap()])
+            .env("GRASPD_LOG", "warn")
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(needle), "{err}");
+    }
+}
+
 /// Event-driven waiting with a long linger: after each answer the worker
 /// keeps receiving while the leader sleeps, so back-to-back calls from two
 /// clients are received by either thread. Every call is answered once, and

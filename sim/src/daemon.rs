@@ -155,7 +155,7 @@ impl DaemonGrasper {
         camera: SceneCamera,
         lab: LabFrame,
     ) -> Result<Self, SimError> {
-        let assets = GraspAssets::load(category, hand, &space).map_err(|reason| SimError::Plan { reason })?;
+        let assets = GraspAssets::load(category, hand, &space, None).map_err(|reason| SimError::Plan { reason })?;
         let backend = EngineBackend { registrar: Registrar::new(space), assets };
         Ok(Self {
             backend: Backend::Engine(Box::new(backend)),

@@ -1,6 +1,7 @@
 //! `graspd demo`: author a demonstration on a canonical tool (close until
 //! contact) and check a demonstration file made elsewhere.
 
+use super::hand::HandArgs;
 use super::{print_json, CliResult};
 use clap::Subcommand;
 use graspd::grasp::{
@@ -43,6 +44,8 @@ pub enum DemoCommand {
         /// Check and print, but write nothing.
         #[arg(long)]
         dry_run: bool,
+        #[command(flatten)]
+        hand: HandArgs,
         #[arg(long)]
         json: bool,
     },
@@ -67,6 +70,8 @@ pub enum DemoCommand {
         /// No table, even where the file says it was made with one (`"table": true`, the default).
         #[arg(long)]
         no_table: bool,
+        #[command(flatten)]
+        hand: HandArgs,
         #[arg(long)]
         json: bool,
     },
@@ -141,7 +146,9 @@ fn joints_json(hand: &HandModel, grasp: &Grasp) -> serde_json::Value {
 }
 
 pub fn run(cmd: DemoCommand) -> CliResult {
-    let hand = HandModel::default_sih()?;
+    let hand = match &cmd {
+        DemoCommand::Author { hand, .. } | DemoCommand::Check { hand, .. } => hand.load()?,
+    };
     match cmd {
         DemoCommand::Author {
             category,
@@ -153,6 +160,7 @@ pub fn run(cmd: DemoCommand) -> CliResult {
             max_penetration_mm,
             no_table,
             dry_run,
+            hand: _,
             json,
         } => {
             let category: Category = category.parse()?;
@@ -213,6 +221,7 @@ pub fn run(cmd: DemoCommand) -> CliResult {
             max_penetration_mm,
             max_keypoint_mismatch_mm,
             no_table,
+            hand: _,
             json,
         } => {
             let demo = Demonstration::load(&file)?;

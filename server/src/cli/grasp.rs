@@ -2,6 +2,7 @@
 //! (cloud → registration → grasp → pre-grasp) and `graspd eval grasp`
 //! (the paper's Table I on the training instances).
 
+use super::hand::HandArgs;
 use super::register::ViewArgs;
 use super::space::spaces_dir;
 use super::{print_json, progress_bar, CliResult};
@@ -32,6 +33,8 @@ pub struct RetargetArgs {
     /// A table plane z = this (world) the hand must stay above.
     #[arg(long, allow_hyphen_values = true)]
     table_z: Option<f64>,
+    #[command(flatten)]
+    hand: HandArgs,
     #[arg(long)]
     json: bool,
 }
@@ -64,6 +67,8 @@ pub struct GraspArgs {
     joint_fraction: f64,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    #[command(flatten)]
+    hand: HandArgs,
     #[arg(long)]
     json: bool,
 }
@@ -95,6 +100,8 @@ pub struct EvalGraspArgs {
     /// space, cached in assets/spaces and built there when missing).
     #[arg(long)]
     space: Option<PathBuf>,
+    #[command(flatten)]
+    hand: HandArgs,
     #[arg(long)]
     json: bool,
 }
@@ -221,7 +228,7 @@ pub fn grasp_json(hand: &HandModel, g: &Grasp) -> serde_json::Value {
 }
 
 pub fn run_retarget(a: RetargetArgs) -> CliResult {
-    let hand = HandModel::default_sih()?;
+    let hand = a.hand.load()?;
     let (sets, batch) = read_targets(&hand, &a.keypoints)?;
     let opts = SolveOptions { starts: a.starts.max(1), seed: a.seed, ..SolveOptions::default() };
     let mut solver = GraspSolver::new(&hand, opts);
@@ -292,8 +299,9 @@ fn canonical_instance(category: Category) -> Result<tools::Instance, AnyError> {
 pub fn run_grasp(a: GraspArgs) -> CliResult {
     let t_total = Instant::now();
     let category: Category = a.category.parse()?;
-    let hand = HandModel::default_sih()?;
+    let hand = a.hand.load()?;
     let demo = load_demo(a.demo.as_ref(), category)?;
+    demo.check_hand(&hand)?;
     let demo_keypoints = demo.keypoints(&hand)?;
     let canonical = canonical_instance(category)?;
     let cloud = graspd::io::read_cloud(&a.cloud)?;
@@ -441,8 +449,9 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
 
 pub fn run_eval(a: EvalGraspArgs) -> CliResult {
     let category: Category = a.category.parse()?;
-    let hand = HandModel::default_sih()?;
+    let hand = a.hand.load()?;
     let mut demo = load_demo(a.demo.as_ref(), category)?;
+    demo.check_hand(&hand)?;
     if let Some(mm) = a.margin_mm {
         demo.penetration_margin_m = Some(1e-3 * mm);
     }

@@ -14,11 +14,8 @@ use std::path::PathBuf;
 pub enum HandCommand {
     /// Joints, actuated joints, mimic couplings, limits and keypoints of the hand.
     Info {
-        /// URDF of another hand (with --keypoints); default: the bundled SIH-like hand.
-        #[arg(long, requires = "keypoints")]
-        urdf: Option<PathBuf>,
-        #[arg(long, requires = "urdf")]
-        keypoints: Option<PathBuf>,
+        #[command(flatten)]
+        hand: HandArgs,
         #[arg(long)]
         json: bool,
     },
@@ -32,17 +29,34 @@ pub enum HandCommand {
         /// Wrist positions are uniform in a cube of this half size around the origin, metres.
         #[arg(long, default_value_t = 0.2)]
         extent_m: f64,
+        #[command(flatten)]
+        hand: HandArgs,
         #[arg(long)]
         json: bool,
     },
 }
 
-/// The hand of a command: the bundled SIH-like hand, or a URDF and keypoints file.
-pub fn load_hand(urdf: Option<&PathBuf>, keypoints: Option<&PathBuf>) -> Result<HandModel, Box<dyn std::error::Error>> {
-    Ok(match (urdf, keypoints) {
-        (Some(u), Some(k)) => HandModel::from_urdf_file(u, k)?,
-        _ => HandModel::default_sih()?,
-    })
+/// The hand a command works with: the bundled SIH-like hand, or another
+/// one from its URDF (primitive collision shapes) and keypoints file
+/// (format: assets/hands/sih_right/README.md). Every command that solves,
+/// checks or authors a grasp takes these options.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct HandArgs {
+    /// URDF of another hand than the bundled SIH-like one (with --hand-keypoints).
+    #[arg(long, alias = "urdf", requires = "hand_keypoints")]
+    pub hand_urdf: Option<PathBuf>,
+    /// The keypoints file of the --hand-urdf hand.
+    #[arg(long, alias = "keypoints", requires = "hand_urdf")]
+    pub hand_keypoints: Option<PathBuf>,
+}
+
+impl HandArgs {
+    pub fn load(&self) -> Result<HandModel, Box<dyn std::error::Error>> {
+        Ok(match (&self.hand_urdf, &self.hand_keypoints) {
+            (Some(u), Some(k)) => HandModel::from_urdf_file(u, k)?,
+            _ => HandModel::default_sih()?,
+        })
+    }
 }
 
 fn kind_name(kind: JointKind) -> &'static str {
@@ -158,8 +172,8 @@ pub fn random_wrist(rng: &mut ChaCha8Rng, extent: f64) -> Isometry3<f64> {
 
 pub fn run(cmd: HandCommand) -> CliResult {
     match cmd {
-        HandCommand::Info { urdf, keypoints, json } => {
-            let hand = load_hand(urdf.as_ref(), keypoints.as_ref())?;
+        HandCommand::Info { hand, json } => {
+            let hand = hand.load()?;
             if json {
                 print_json(&info_json(&hand))?;
             } else {
@@ -186,11 +200,11 @@ pub fn run(cmd: HandCommand) -> CliResult {
                 }
             }
         }
-        HandCommand::Sample { n, seed, extent_m, json: _ } => {
+        HandCommand::Sample { n, seed, extent_m, hand, json: _ } => {
             if !(extent_m.is_finite() && extent_m >= 0.0) {
                 return Err(format!("--extent-m {extent_m}: expected a non-negative number").into());
             }
-            let hand = HandModel::default_sih()?;
+            let hand = hand.load()?;
             let mut rng = ChaCha8Rng::seed_from_u64(seed);
             let sets: Vec<serde_json::Value> = (0..n)
                 .map(|_| {

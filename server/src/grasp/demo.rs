@@ -336,6 +336,24 @@ impl Demonstration {
         }
     }
 
+    /// Checks that the demonstration was made with `hand`: the hand's name
+    /// (the URDF robot's), a value within its limits for each of its
+    /// actuated joints, and its keypoints by name.
+    pub fn check_hand(&self, hand: &HandModel) -> Result<(), GraspError> {
+        if self.hand != hand.name() {
+            return Err(GraspError::InvalidOption {
+                what: "demonstration",
+                reason: format!(
+                    "made with hand `{}`, not `{}` (author one for it: `graspd demo author --hand-urdf ... --hand-keypoints ...`)",
+                    self.hand,
+                    hand.name()
+                ),
+            });
+        }
+        self.grasp_at(hand, &Isometry3::identity())?;
+        self.keypoints(hand).map(|_| ())
+    }
+
     /// The demonstrated grasp with the tool at `tool_pose_world` (the CG
     /// grasp, and the natural warm start). Checks the file against `hand`.
     pub fn grasp_at(&self, hand: &HandModel, tool_pose_world: &Isometry3<f64>) -> Result<Grasp, GraspError> {

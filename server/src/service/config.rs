@@ -1,6 +1,7 @@
 //! The daemon's configuration (TOML). deploy/graspd.toml documents every option.
 
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 /// How the dispatcher waits for requests.
@@ -50,6 +51,14 @@ pub struct Config {
     /// A Unix-domain socket serving Register with a serialised copy of the cloud: the
     /// baseline `graspctl bench` compares with. Off when absent.
     pub uds_baseline: Option<PathBuf>,
+    /// Another hand than the bundled SIH-like one, for Grasp: its URDF
+    /// (collision shapes as primitives) and keypoints file, both or neither.
+    pub hand_urdf: Option<PathBuf>,
+    pub hand_keypoints: Option<PathBuf>,
+    /// A demonstration file per category, made with the hand Grasp solves
+    /// for; a category not named here uses the bundled
+    /// `assets/demos/<category>.json` (made with the SIH-like hand).
+    pub demos: BTreeMap<String, PathBuf>,
 }
 
 impl Default for Config {
@@ -69,6 +78,9 @@ impl Default for Config {
             shutdown_grace_s: 30.0,
             metrics_interval_s: 0.0,
             uds_baseline: None,
+            hand_urdf: None,
+            hand_keypoints: None,
+            demos: BTreeMap::new(),
         }
     }
 }
@@ -137,7 +149,23 @@ impl Config {
         if self.housekeeping_ms == 0 || self.housekeeping_ms > 60_000 {
             return bad(format!("housekeeping_ms {}: 1 to 60000", self.housekeeping_ms));
         }
+        if self.hand_urdf.is_some() != self.hand_keypoints.is_some() {
+            return bad("hand_urdf and hand_keypoints: both or neither".into());
+        }
+        for c in self.demos.keys() {
+            if !self.categories.contains(c) {
+                return bad(format!("demos: {c:?} is not among the categories served"));
+            }
+        }
         Ok(())
+    }
+
+    /// The hand and demonstrations Grasp uses.
+    pub fn grasp_sources(&self) -> super::engine::GraspSources {
+        super::engine::GraspSources {
+            hand: self.hand_urdf.clone().zip(self.hand_keypoints.clone()),
+            demos: self.demos.clone(),
+        }
     }
 
     /// Worker threads to start (with `workers = 0`, the cores available:
@@ -172,6 +200,8 @@ mod tests {
             ("service_prefix = \"a/b\"", "service_prefix"),
             ("slow_request_ms = -1.0", "slow_request_ms"),
             ("linger_us = 1000000", "linger_us"),
+            ("hand_urdf = \"/tmp/h.urdf\"", "both or neither"),
+            ("[demos]\nspoon = \"/tmp/s.json\"", "spoon"),
         ] {
             let dir = tempfile::tempdir().unwrap();
             let p = dir.path().join("c.toml");

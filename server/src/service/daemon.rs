@@ -903,7 +903,7 @@ pub fn serve(config: Config, opts: ServeOptions) -> Result<ServeReport, ServeErr
     let _ = termination_requested();
 
     let cache_dir = config.cache_dir.clone().unwrap_or_else(default_cache_dir);
-    let (engine, times) = Engine::load(&config.categories, &cache_dir)?;
+    let (engine, times) = Engine::load(&config.categories, &cache_dir, &config.grasp_sources())?;
     for (name, ms) in &times {
         tracing::info!("loaded {name} in {ms:.1} ms");
     }

@@ -8,7 +8,8 @@ use crate::shape::{builtin, RegisterOptions, Registrar, ShapeSpace};
 use crate::tools::{Category, Split};
 use graspd_proto::{self as proto, StatusCode};
 use nalgebra::Point3;
-use std::path::Path;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// A status code with its message: what every failed request is answered with.
@@ -55,15 +56,38 @@ pub struct Engine {
 pub enum EngineError {
     #[error("category {name}: {reason}")]
     Category { name: String, reason: String },
+    #[error("hand: {0}")]
+    Hand(String),
+}
+
+/// Where Grasp's hand and demonstrations come from: the bundled SIH-like
+/// hand and `assets/demos/<category>.json` unless the configuration names
+/// others. A hand or demonstration the configuration names must load and
+/// fit (the daemon does not start otherwise); the bundled ones, if they
+/// fail, leave Grasp unserved with the reason.
+#[derive(Clone, Debug, Default)]
+pub struct GraspSources {
+    /// URDF and keypoints file of the hand.
+    pub hand: Option<(PathBuf, PathBuf)>,
+    /// A demonstration file per category name.
+    pub demos: BTreeMap<String, PathBuf>,
 }
 
 impl Engine {
     /// Loads (or builds and caches) the shape space of every category; returns
     /// the load time of each, milliseconds.
-    pub fn load(names: &[String], cache_dir: &Path) -> Result<(Engine, Vec<(String, f64)>), EngineError> {
+    pub fn load(
+        names: &[String],
+        cache_dir: &Path,
+        sources: &GraspSources,
+    ) -> Result<(Engine, Vec<(String, f64)>), EngineError> {
         let mut categories = Vec::new();
         let mut times = Vec::new();
-        let hand = HandModel::default_sih().map_err(|e| format!("hand model: {e}")).and_then(|h| {
+        let hand = match &sources.hand {
+            Some((urdf, keypoints)) => HandModel::from_urdf_file(urdf, keypoints),
+            None => HandModel::default_sih(),
+        };
+        let hand = hand.map_err(|e| format!("hand model: {e}")).and_then(|h| {
             if h.num_actuated() > proto::MAX_JOINTS || h.moving_joints().len() > proto::MAX_JOINTS {
                 Err(format!(
                     "the hand has more than {} joints; the protocol carries {}",
@@ -74,8 +98,15 @@ impl Engine {
                 Ok(h)
             }
         });
-        if let Err(e) = &hand {
-            tracing::warn!("Grasp will not be served: {e}");
+        match (&hand, &sources.hand) {
+            (Err(e), Some(_)) => return Err(EngineError::Hand(e.clone())),
+            (Err(e), None) => tracing::warn!("Grasp will not be served: {e}"),
+            (Ok(h), _) => tracing::info!(
+                "hand {} ({} actuated joints, {} keypoints)",
+                h.name(),
+                h.num_actuated(),
+                h.keypoints().len()
+            ),
         }
         let (actuated_names, joint_names) = match &hand {
             Ok(h) => (
@@ -112,12 +143,15 @@ impl Engine {
             }
             info.canonical_frame = proto::str_to_text(category.canonical_frame());
             let registrar = Registrar::new(space);
+            let demo = sources.demos.get(name).map(PathBuf::as_path);
             let grasp = match &hand {
-                Ok(h) => GraspAssets::load(category, h, &registrar.space),
+                Ok(h) => GraspAssets::load(category, h, &registrar.space, demo),
                 Err(e) => Err(e.clone()),
             };
-            if let Err(e) = &grasp {
-                tracing::warn!("Grasp will not be served for {name}: {e}");
+            match (&grasp, demo) {
+                (Err(e), Some(_)) => return Err(err(e.clone())),
+                (Err(e), None) => tracing::warn!("Grasp will not be served for {name}: {e}"),
+                (Ok(_), _) => {}
             }
             times.push((name.clone(), 1e3 * t0.elapsed().as_secs_f64()));
             categories.push(LoadedCategory { category, registrar, info, grasp });
@@ -238,10 +272,18 @@ impl Engine {
 }
 
 impl GraspAssets {
-    /// The category's bundled demonstration for `hand`, carried by `space`
-    /// (the category's shape space). Err: why Grasp cannot be served.
-    pub fn load(category: Category, hand: &HandModel, space: &ShapeSpace) -> Result<Self, String> {
-        let demo = Demonstration::builtin(category).map_err(|e| format!("demonstration: {e}"))?;
+    /// The category's demonstration (the file at `demo`, else the bundled
+    /// one) for `hand`, carried by `space` (the category's shape space).
+    /// The demonstration must have been made with `hand`: its name, actuated
+    /// joints, limits and keypoints are checked here, not at the first
+    /// request. Err: why Grasp cannot be served.
+    pub fn load(category: Category, hand: &HandModel, space: &ShapeSpace, demo: Option<&Path>) -> Result<Self, String> {
+        let demo = match demo {
+            Some(path) => Demonstration::load(path),
+            None => Demonstration::builtin(category),
+        }
+        .map_err(|e| format!("demonstration: {e}"))?;
+        demo.check_hand(hand).map_err(|e| format!("{e}"))?;
         let demo_keypoints = demo.keypoints(hand).map_err(|e| format!("demonstration: {e}"))?;
         let canonical_mesh = crate::tools::family(category)
             .map_err(|e| e.to_string())?
@@ -420,5 +462,105 @@ mod tests {
         h.up_in_cloud = [0.0, 0.0, 1.0];
         h.table_z_m = f32::NAN;
         assert_eq!(register_options(&h).unwrap_err().code, StatusCode::InvalidArgument);
+    }
+
+    /// The bundled hand with its robot and one actuated joint renamed, its
+    /// keypoints file to match, and (when `demo`) the mug demonstration for
+    /// it: the same kinematics under other names, written to `dir`.
+    fn renamed_hand(dir: &Path, demo: bool) -> GraspSources {
+        let hands = Path::new(crate::hand::SIH_ASSET_DIR);
+        let rename = |text: String| {
+            text.replace("palm_to_if_proximal", "palm_to_index_base").replace("\"sih_right\"", "\"sih_renamed\"")
+        };
+        let urdf = rename(std::fs::read_to_string(hands.join("sih_right.urdf")).unwrap());
+        let keypoints = rename(std::fs::read_to_string(hands.join("keypoints.json")).unwrap());
+        assert!(urdf.contains("palm_to_index_base") && urdf.contains("\"sih_renamed\""));
+        let (u, k) = (dir.join("hand.urdf"), dir.join("keypoints.json"));
+        std::fs::write(&u, urdf).unwrap();
+        std::fs::write(&k, keypoints).unwrap();
+        let mut sources = GraspSources { hand: Some((u, k)), demos: BTreeMap::new() };
+        if demo {
+            let path = Demonstration::builtin_path(Category::Mug);
+            let text = rename(std::fs::read_to_string(path).unwrap());
+            assert!(text.contains("palm_to_index_base") && text.contains("\"sih_renamed\""));
+            std::fs::write(dir.join("mug.json"), text).unwrap();
+            sources.demos.insert("mug".into(), dir.join("mug.json"));
+        }
+        sources
+    }
+
+    fn mug_view() -> Vec<proto::Point> {
+        use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
+        let mesh =
+            crate::tools::family(Category::Mug).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap().mesh;
+        let (lo, hi) = mesh.aabb().unwrap();
+        let scene = Scene::new(&mesh, nalgebra::Isometry3::identity(), Some(lo.z)).unwrap();
+        let centre = Point3::from((lo.coords + hi.coords) / 2.0);
+        let pose = standard_view(0, 8, centre, mesh.diagonal(), Intrinsics::default()).unwrap();
+        let cam =
+            DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: pose, noise: DepthNoise::default() };
+        let view = cam.capture(&scene, 1).unwrap();
+        view.points_world.iter().map(|p| proto::Point([p.x as f32, p.y as f32, p.z as f32])).collect()
+    }
+
+    fn grasp_header() -> proto::RequestHeader {
+        let mut h = proto::RequestHeader::zeroed();
+        h.protocol_version = proto::PROTOCOL_VERSION;
+        h.up_in_cloud = [0.0, 0.0, 1.0];
+        h
+    }
+
+    /// A hand and demonstration named by the configuration are the ones
+    /// Grasp solves for: the bundled hand under other names gives the same
+    /// grasp, named as the configured hand names its joints.
+    #[test]
+    fn a_configured_hand_and_demonstration_serve_grasp() {
+        let cache = Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/spaces");
+        let dir = tempfile::tempdir().unwrap();
+        let names = vec!["mug".to_string()];
+        let (bundled, _) = Engine::load(&names, &cache, &GraspSources::default()).unwrap();
+        let (renamed, _) = Engine::load(&names, &cache, &renamed_hand(dir.path(), true)).unwrap();
+        assert_eq!(renamed.hand.as_ref().unwrap().name(), "sih_renamed");
+        let (cloud, h) = (mug_view(), grasp_header());
+        let a = bundled.grasp(0, &cloud, &h).unwrap();
+        let b = renamed.grasp(0, &cloud, &h).unwrap();
+        let names_of = |r: &proto::GraspResponse| -> Vec<String> {
+            r.actuated_names[..r.actuated_count as usize].iter().map(|n| proto::text_lossy(n)).collect()
+        };
+        assert!(names_of(&a).iter().any(|n| n == "palm_to_if_proximal"));
+        assert!(names_of(&b).iter().any(|n| n == "palm_to_index_base"), "{:?}", names_of(&b));
+        assert!(!names_of(&b).iter().any(|n| n == "palm_to_if_proximal"));
+        assert_eq!(a.grasp.actuated, b.grasp.actuated);
+        assert_eq!(a.grasp.translation_cloud_from_wrist_m, b.grasp.translation_cloud_from_wrist_m);
+    }
+
+    /// Another hand without a demonstration of its own: Register still
+    /// serves, Grasp is refused with the reason; a configured demonstration
+    /// or hand that does not fit or load stops the start.
+    #[test]
+    fn a_hand_without_its_demonstration_is_refused_clearly() {
+        let cache = Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/spaces");
+        let dir = tempfile::tempdir().unwrap();
+        let names = vec!["mug".to_string()];
+        let (engine, _) = Engine::load(&names, &cache, &renamed_hand(dir.path(), false)).unwrap();
+        let (cloud, h) = (mug_view(), grasp_header());
+        assert!(engine.register(0, &cloud, &h).is_ok());
+        let e = engine.grasp(0, &cloud, &h).unwrap_err();
+        assert_eq!(e.code, StatusCode::FailedPrecondition);
+        assert!(e.message.contains("made with hand `sih_right`, not `sih_renamed`"), "{}", e.message);
+        // The bundled (sih_right) demonstration named for the renamed hand.
+        let mut sources = renamed_hand(dir.path(), false);
+        sources.demos.insert("mug".into(), Demonstration::builtin_path(Category::Mug));
+        let e = Engine::load(&names, &cache, &sources).err().unwrap().to_string();
+        assert!(e.contains("mug") && e.contains("made with hand `sih_right`"), "{e}");
+        // A demonstration file that is not there.
+        sources.demos.insert("mug".into(), dir.path().join("missing.json"));
+        let e = Engine::load(&names, &cache, &sources).err().unwrap().to_string();
+        assert!(e.contains("missing.json"), "{e}");
+        // A hand whose URDF is not there.
+        let sources =
+            GraspSources { hand: Some((dir.path().join("no.urdf"), dir.path().join("k.json"))), ..Default::default() };
+        let e = Engine::load(&names, &cache, &sources).err().unwrap().to_string();
+        assert!(e.starts_with("hand:") && e.contains("no.urdf"), "{e}");
     }
 }
