@@ -37,7 +37,7 @@ pub enum HandCommand {
 }
 
 /// The hand a command works with: the bundled SIH-like hand, or another
-/// one from its URDF (primitive collision shapes) and keypoints file
+/// one from its URDF (collision primitives; meshes as the capsules enclosing them) and keypoints file
 /// (format: assets/hands/sih_right/README.md). Every command that solves,
 /// checks or authors a grasp takes these options.
 #[derive(clap::Args, Clone, Debug, Default)]

@@ -17,6 +17,7 @@
 
 pub mod keypoints;
 pub mod kinematics;
+pub mod mesh_collision;
 pub mod model;
 
 pub use keypoints::Keypoint;

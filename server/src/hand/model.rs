@@ -197,17 +197,25 @@ impl HandModel {
         };
         let urdf = read(urdf_path.as_ref())?;
         let keypoints = read(keypoints_path.as_ref())?;
-        Self::from_urdf_str(&urdf, &keypoints)
+        Self::from_urdf_str_in(&urdf, &keypoints, urdf_path.as_ref().parent())
     }
 
-    /// Loads a hand from URDF text and keypoints JSON text.
+    /// Loads a hand from URDF text and keypoints JSON text (collision mesh
+    /// files relative to the current directory).
     pub fn from_urdf_str(urdf: &str, keypoints_json: &str) -> Result<Self, HandModelError> {
+        Self::from_urdf_str_in(urdf, keypoints_json, None)
+    }
+
+    /// [`Self::from_urdf_str`] with collision mesh files found relative to
+    /// `mesh_dir` (the URDF's directory; see
+    /// [`super::mesh_collision::resolve_mesh_path`]).
+    pub fn from_urdf_str_in(urdf: &str, keypoints_json: &str, mesh_dir: Option<&Path>) -> Result<Self, HandModelError> {
         // urdf-rs goes through two XML libraries; a panic in either must not
         // take the daemon down on a bad file, so it is caught and reported.
         let parsed = std::panic::catch_unwind(|| urdf_rs::read_from_string(urdf))
             .map_err(|_| HandModelError::MalformedUrdf { reason: "the URDF parser panicked on this input".into() })?;
         let robot = parsed.map_err(|e| HandModelError::MalformedUrdf { reason: e.to_string() })?;
-        let mut model = build_tree(&robot)?;
+        let mut model = build_tree(&robot, mesh_dir)?;
         let file = parse_keypoints_json(keypoints_json, &model)?;
         model.keypoints = file.keypoints;
         model.fingertips = file.fingertips;
@@ -330,7 +338,7 @@ fn pose_to_isometry(pose: &urdf_rs::Pose, element: impl Fn() -> String) -> Resul
 }
 
 /// Converts the parsed URDF into our tree and checks it.
-fn build_tree(robot: &urdf_rs::Robot) -> Result<HandModel, HandModelError> {
+fn build_tree(robot: &urdf_rs::Robot, mesh_dir: Option<&Path>) -> Result<HandModel, HandModelError> {
     if robot.links.is_empty() {
         return Err(HandModelError::NoLinks { robot: robot.name.clone() });
     }
@@ -488,7 +496,7 @@ fn build_tree(robot: &urdf_rs::Robot) -> Result<HandModel, HandModelError> {
     let mut collisions = Vec::new();
     for (link_id, ul) in robot.links.iter().enumerate() {
         for (index, c) in ul.collision.iter().enumerate() {
-            convert_collision(link_id, ul, index, c, &mut collisions)?;
+            convert_collision(link_id, ul, index, c, mesh_dir, &mut collisions)?;
         }
     }
 
@@ -587,6 +595,7 @@ fn convert_collision(
     ul: &urdf_rs::Link,
     index: usize,
     c: &urdf_rs::Collision,
+    mesh_dir: Option<&Path>,
     out: &mut Vec<CollisionPrimitive>,
 ) -> Result<(), HandModelError> {
     let bad = |reason: String| HandModelError::InvalidCollision { link: ul.name.clone(), index, reason };
@@ -626,12 +635,42 @@ fn convert_collision(
                 push(cap, CollisionShape::Sphere { radius });
             }
         }
-        urdf_rs::Geometry::Mesh { filename, .. } => {
-            // Dropping it would leave a part of the hand that passes through
-            // objects unnoticed; the model must say its shape in primitives.
-            return Err(bad(format!(
-                "mesh `{filename}` is not supported; describe the collision shape with box, sphere, cylinder or capsule"
-            )));
+        urdf_rs::Geometry::Mesh { filename, scale } => {
+            // The capsule enclosing the mesh (`mesh_collision`): a part of
+            // the hand dropped, or shrunk, would pass through tools unnoticed.
+            let path = super::mesh_collision::resolve_mesh_path(filename, mesh_dir);
+            let loaded = crate::io::read_mesh(&path).map_err(|e| {
+                bad(format!(
+                    "mesh `{filename}` ({}): {e}; OBJ and STL meshes are read, or describe the shape with box, sphere, cylinder or capsule",
+                    path.display()
+                ))
+            })?;
+            let s = scale.map_or([1.0; 3], |s| s.0);
+            if !s.iter().all(|v| v.is_finite() && *v != 0.0) {
+                return Err(bad(format!("mesh `{filename}`: scale {s:?} is not finite and nonzero")));
+            }
+            let points: Vec<Vector3<f64>> =
+                loaded.mesh.vertices.iter().map(|p| Vector3::new(s[0] * p.x, s[1] * p.y, s[2] * p.z)).collect();
+            let capsule = super::mesh_collision::enclosing_capsule(&points)
+                .ok_or_else(|| bad(format!("mesh `{filename}` ({}): no finite vertices", path.display())))?;
+            tracing::info!(
+                "link `{}`: collision mesh `{filename}` taken as the capsule enclosing it (radius {:.1} mm, segment {:.1} mm)",
+                ul.name,
+                1e3 * capsule.radius,
+                2e3 * capsule.half_length
+            );
+            let frame = origin * capsule.frame;
+            if capsule.half_length > 0.0 {
+                push(frame, CollisionShape::Cylinder { radius: capsule.radius, half_length: capsule.half_length });
+                for s in [-1.0, 1.0] {
+                    push(
+                        frame * Translation3::new(0.0, 0.0, s * capsule.half_length),
+                        CollisionShape::Sphere { radius: capsule.radius },
+                    );
+                }
+            } else {
+                push(frame, CollisionShape::Sphere { radius: capsule.radius });
+            }
         }
     }
     Ok(())

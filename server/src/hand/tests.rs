@@ -804,3 +804,74 @@ fn malformed_keypoints_errors_name_the_element() {
         }
     }
 }
+
+/// A collision given as a mesh (a 10 × 10 × 40 mm box, scaled, placed by
+/// the collision's origin) becomes the capsule enclosing it, in the link's
+/// frame; a mesh that cannot be read is an error naming it.
+#[test]
+fn a_collision_mesh_becomes_the_capsule_enclosing_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let meshes = dir.path().join("meshes");
+    std::fs::create_dir_all(&meshes).unwrap();
+    let corners: Vec<[f64; 3]> =
+        (0..8).map(|i| [(i & 1) as f64 * 0.01, ((i >> 1) & 1) as f64 * 0.01, (i >> 2) as f64 * 0.04]).collect();
+    let mut obj: String = corners.iter().map(|c| format!("v {} {} {}\n", c[0], c[1], c[2])).collect();
+    for f in [
+        [1, 3, 2],
+        [2, 3, 4],
+        [5, 6, 8],
+        [5, 8, 7],
+        [1, 2, 6],
+        [1, 6, 5],
+        [3, 7, 8],
+        [3, 8, 4],
+        [1, 5, 7],
+        [1, 7, 3],
+        [2, 4, 8],
+        [2, 8, 6],
+    ] {
+        obj += &format!("f {} {} {}\n", f[0], f[1], f[2]);
+    }
+    std::fs::write(meshes.join("phalanx.obj"), obj).unwrap();
+    let urdf = r#"<robot name="r"><link name="base"><collision><origin xyz="0.1 0 0" rpy="0 0 1.5707963267948966"/><geometry><mesh filename="../meshes/phalanx.obj" scale="1 1 0.5"/></geometry></collision></link></robot>"#;
+    let urdf_dir = dir.path().join("urdf");
+    std::fs::create_dir_all(&urdf_dir).unwrap();
+    std::fs::write(urdf_dir.join("r.urdf"), urdf).unwrap();
+    std::fs::write(urdf_dir.join("k.json"), r#"{ "keypoints": [], "palm_normal": [0,1,0] }"#).unwrap();
+    let hand = HandModel::from_urdf_file(urdf_dir.join("r.urdf"), urdf_dir.join("k.json")).unwrap();
+    let prims = hand.collision_primitives();
+    assert_eq!(prims.len(), 3, "a cylinder and its two caps: {prims:?}");
+    let CollisionShape::Cylinder { radius, half_length } = prims[0].shape else { panic!("{prims:?}") };
+    // The box scaled to 10 × 10 × 20 mm: radius its cross-section's half
+    // diagonal, 7.1 mm; its corners on the cylinder's rims, 20 mm apart.
+    assert!((radius - 0.005 * 2f64.sqrt()).abs() < 1e-9, "{radius} {prims:?}");
+    assert!((half_length - 0.01).abs() < 1e-9, "{half_length}");
+    // Every corner, scaled and placed by the collision's origin, lies in the capsule.
+    let origin = Isometry3::from_parts(
+        Translation3::new(0.1, 0.0, 0.0),
+        UnitQuaternion::from_euler_angles(0.0, 0.0, std::f64::consts::FRAC_PI_2),
+    );
+    for c in &corners {
+        let p = origin * Point3::new(c[0], c[1], 0.5 * c[2]);
+        let inside = prims.iter().any(|prim| {
+            let local = prim.origin.inverse_transform_point(&p);
+            match prim.shape {
+                CollisionShape::Sphere { radius } => local.coords.norm() <= radius + 1e-12,
+                CollisionShape::Cylinder { radius, half_length } => {
+                    local.z.abs() <= half_length + 1e-12 && local.coords.xy().norm() <= radius + 1e-12
+                }
+                CollisionShape::Box { .. } => false,
+            }
+        });
+        assert!(inside, "corner {p:?} outside {prims:?}");
+    }
+    // A format that is not read, and a file that is not there.
+    for (file, words) in [("hand.dae", &["hand.dae", "OBJ and STL"][..]), ("gone.obj", &["gone.obj"][..])] {
+        let text = urdf.replace("../meshes/phalanx.obj", file);
+        std::fs::write(urdf_dir.join("bad.urdf"), text).unwrap();
+        let e = HandModel::from_urdf_file(urdf_dir.join("bad.urdf"), urdf_dir.join("k.json")).unwrap_err().to_string();
+        for w in words {
+            assert!(e.contains(w) && e.contains("base"), "{e}");
+        }
+    }
+}

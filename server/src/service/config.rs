@@ -52,7 +52,8 @@ pub struct Config {
     /// baseline `graspctl bench` compares with. Off when absent.
     pub uds_baseline: Option<PathBuf>,
     /// Another hand than the bundled SIH-like one, for Grasp: its URDF
-    /// (collision shapes as primitives) and keypoints file, both or neither.
+    /// (collision primitives; an OBJ or STL mesh as the capsule enclosing
+    /// it) and keypoints file, both or neither.
     pub hand_urdf: Option<PathBuf>,
     pub hand_keypoints: Option<PathBuf>,
     /// A demonstration file per category, made with the hand Grasp solves
