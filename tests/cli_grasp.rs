@@ -64,6 +64,14 @@ fn hand_info_lists_joints_couplings_limits_keypoints() {
     let if_distal = joints.iter().find(|j| j["name"] == "if_proximal_to_if_distal").unwrap();
     assert_eq!(if_distal["drive"]["kind"], "mimic");
     assert_eq!(if_distal["type"], "revolute");
+    // The URDF's 35 collision elements, each on its link with its shape.
+    let collisions = v["collision_primitives"].as_array().unwrap();
+    assert_eq!(collisions.len(), 35);
+    let plate = collisions.iter().find(|c| c["name"] == "palm_plate").unwrap();
+    assert_eq!(plate["link"], "palm");
+    assert!(plate["shape"]["box"]["half_extents"].as_array().is_some_and(|h| h.len() == 3), "{plate}");
+    let tip = collisions.iter().find(|c| c["name"] == "if_distal_sphere_tip").unwrap();
+    assert!(f(&tip["shape"]["sphere"]["radius"]) > 0.0, "{tip}");
 }
 
 #[test]

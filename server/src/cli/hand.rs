@@ -4,7 +4,7 @@
 use super::{print_json, CliResult};
 use clap::Subcommand;
 use graspd::grasp::{Grasp, PoseFile};
-use graspd::hand::{HandModel, JointDrive, JointKind};
+use graspd::hand::{CollisionShape, HandModel, JointDrive, JointKind};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -127,6 +127,30 @@ pub fn info_json(hand: &HandModel) -> serde_json::Value {
             .map(|k| serde_json::json!({"name": k.name, "link": hand.links()[k.link].name, "offset": [k.offset.x, k.offset.y, k.offset.z]}))
             .collect()
     };
+    // Each primitive in its link's frame (a collision mesh appears as the
+    // cylinder and two spheres of the capsule enclosing it).
+    let collisions: Vec<serde_json::Value> = hand
+        .collision_primitives()
+        .iter()
+        .map(|c| {
+            let (t, q) = (c.origin.translation.vector, c.origin.rotation.coords);
+            let shape = match c.shape {
+                CollisionShape::Box { half_extents: h } => {
+                    serde_json::json!({"box": {"half_extents": [h.x, h.y, h.z]}})
+                }
+                CollisionShape::Sphere { radius } => serde_json::json!({"sphere": {"radius": radius}}),
+                CollisionShape::Cylinder { radius, half_length } => {
+                    serde_json::json!({"cylinder": {"radius": radius, "half_length": half_length}})
+                }
+            };
+            serde_json::json!({
+                "link": hand.links()[c.link].name,
+                "name": c.name,
+                "origin": {"translation": [t.x, t.y, t.z], "rotation_xyzw": [q.x, q.y, q.z, q.w]},
+                "shape": shape,
+            })
+        })
+        .collect();
     let n = hand.palm_normal();
     serde_json::json!({
         "name": hand.name(),
@@ -139,7 +163,7 @@ pub fn info_json(hand: &HandModel) -> serde_json::Value {
         "keypoints": points(hand.keypoints()),
         "fingertips": points(hand.fingertips()),
         "palm_normal": [n.x, n.y, n.z],
-        "collision_primitives": hand.collision_primitives().len(),
+        "collision_primitives": collisions,
     })
 }
 
