@@ -97,11 +97,28 @@ pub enum ConfigError {
 }
 
 impl Config {
+    /// Reads and checks a configuration file. Relative paths in it (the
+    /// cache, the hand, the demonstrations, the baseline socket) are taken
+    /// from the file's directory, as a unit file's `/etc/graspd/graspd.toml`
+    /// naming `hands/my_hand.urdf` means `/etc/graspd/hands/my_hand.urdf`.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
         let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.into(), source })?;
-        let cfg: Config =
+        let mut cfg: Config =
             toml::from_str(&text).map_err(|e| ConfigError::Parse { path: path.into(), message: e.to_string() })?;
         cfg.validate()?;
+        let dir = path.parent().unwrap_or(Path::new(""));
+        let within = |p: &mut PathBuf| {
+            if p.is_relative() {
+                *p = dir.join(&*p);
+            }
+        };
+        cfg.cache_dir
+            .iter_mut()
+            .chain(&mut cfg.hand_urdf)
+            .chain(&mut cfg.hand_keypoints)
+            .chain(&mut cfg.uds_baseline)
+            .for_each(within);
+        cfg.demos.values_mut().for_each(within);
         Ok(cfg)
     }
 
@@ -189,6 +206,23 @@ mod tests {
         let cfg = Config::load(&path).unwrap();
         let d = Config::default();
         assert_eq!(toml::to_string(&cfg).unwrap(), toml::to_string(&d).unwrap());
+    }
+
+    #[test]
+    fn relative_paths_are_taken_from_the_files_directory() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("graspd.toml");
+        std::fs::write(
+            &p,
+            "cache_dir = \"spaces\"\nhand_urdf = \"hands/h.urdf\"\nhand_keypoints = \"/abs/k.json\"\n[demos]\nmug = \"demos/mug.json\"\n",
+        )
+        .unwrap();
+        let cfg = Config::load(&p).unwrap();
+        assert_eq!(cfg.cache_dir.unwrap(), dir.path().join("spaces"));
+        assert_eq!(cfg.hand_urdf.unwrap(), dir.path().join("hands/h.urdf"));
+        assert_eq!(cfg.hand_keypoints.unwrap(), PathBuf::from("/abs/k.json"));
+        assert_eq!(cfg.demos["mug"], dir.path().join("demos/mug.json"));
+        assert_eq!(cfg.uds_baseline, None);
     }
 
     #[test]
