@@ -73,12 +73,18 @@ impl HandAsset {
     pub fn from_files(urdf_path: impl AsRef<Path>, keypoints_path: impl AsRef<Path>) -> Result<Self, SimError> {
         let read =
             |p: &Path| std::fs::read_to_string(p).map_err(|source| SimError::Io { path: p.to_path_buf(), source });
-        Self::from_strs(&read(urdf_path.as_ref())?, &read(keypoints_path.as_ref())?)
+        let urdf_path = urdf_path.as_ref();
+        Self::from_strs_in(&read(urdf_path)?, &read(keypoints_path.as_ref())?, urdf_path.parent())
     }
 
     /// From URDF text and keypoints JSON text.
     pub fn from_strs(urdf: &str, keypoints_json: &str) -> Result<Self, SimError> {
-        let model = HandModel::from_urdf_str(urdf, keypoints_json)?;
+        Self::from_strs_in(urdf, keypoints_json, None)
+    }
+
+    /// [`Self::from_strs`] with collision mesh files relative to `mesh_dir`.
+    pub fn from_strs_in(urdf: &str, keypoints_json: &str, mesh_dir: Option<&Path>) -> Result<Self, SimError> {
+        let model = HandModel::from_urdf_str_in(urdf, keypoints_json, mesh_dir)?;
         // The model above parsed the same text, so this parse succeeds; the
         // guard is for the XML libraries' panics, as in graspd's loader.
         let robot = std::panic::catch_unwind(|| urdf_rs::read_from_string(urdf))

@@ -165,6 +165,27 @@ struct GraspArgs {
     /// telling the registration's errors from the sensor's.
     #[arg(long, default_value_t = 1.0)]
     camera_noise_scale: f64,
+    /// URDF of another hand than the bundled SIH-like one (with
+    /// --hand-keypoints; its servos take the bundled hand's gains).
+    #[arg(long, requires = "hand_keypoints")]
+    hand_urdf: Option<std::path::PathBuf>,
+    /// The keypoints file of the --hand-urdf hand.
+    #[arg(long, requires = "hand_urdf")]
+    hand_keypoints: Option<std::path::PathBuf>,
+    /// The task's demonstration file (default: the category's bundled one,
+    /// made with the bundled hand; another hand needs its own).
+    #[arg(long)]
+    demo: Option<std::path::PathBuf>,
+}
+
+impl GraspArgs {
+    /// The hand of the episodes: --hand-urdf and --hand-keypoints, else the bundled one.
+    fn hand_asset(&self) -> Result<graspd_sim::hand::HandAsset, Box<dyn std::error::Error>> {
+        Ok(match (&self.hand_urdf, &self.hand_keypoints) {
+            (Some(u), Some(k)) => graspd_sim::hand::HandAsset::from_files(u, k)?,
+            _ => graspd_sim::hand::HandAsset::default_sih()?,
+        })
+    }
 }
 
 #[derive(clap::Args)]
@@ -335,7 +356,13 @@ fn make_planner(
     use graspd_sim::plan::{GraspFrom, GraspPlanner, StartMode};
     let from: GraspFrom = a.grasp_from.parse()?;
     let start: StartMode = a.start.parse()?;
-    let planner = GraspPlanner::new(asset.model(), category, seed)?.with_start(start);
+    let mut planner = match &a.demo {
+        Some(path) => {
+            GraspPlanner::with_demonstration(asset.model(), category, seed, graspd::grasp::Demonstration::load(path)?)?
+        }
+        None => GraspPlanner::new(asset.model(), category, seed)?,
+    };
+    planner = planner.with_start(start);
     if !(a.camera_noise_scale.is_finite() && a.camera_noise_scale >= 0.0) {
         return Err(format!("--camera-noise-scale {}: 0 or more", a.camera_noise_scale).into());
     }
@@ -525,7 +552,7 @@ fn run_pose_task(a: PoseTaskArgs, task: PoseTask) -> Result<(), Box<dyn std::err
     }
     let family = tools::family(category)?;
     let chosen = choose_instances(&family, category, &a.instances)?;
-    let asset = graspd_sim::hand::HandAsset::default_sih()?;
+    let asset = a.grasp.hand_asset()?;
     let mut planner = make_planner(&asset, category, a.seed, &a.grasp)?;
     let mut place = PlaceSetup::default();
     let mut position = DrillSetup::default();
@@ -584,7 +611,7 @@ fn run_nail(a: NailArgs) -> Result<(), Box<dyn std::error::Error>> {
     }
     let family = tools::family(category)?;
     let chosen = choose_instances(&family, category, &a.instances)?;
-    let asset = graspd_sim::hand::HandAsset::default_sih()?;
+    let asset = a.grasp.hand_asset()?;
     let mut planner = make_planner(&asset, category, a.seed, &a.grasp)?;
     let mut setup = NailSetup::default();
     if let Some(n) = a.noslip_iterations {
@@ -826,7 +853,7 @@ fn run_rollout(a: RolloutArgs) -> Result<(), Box<dyn std::error::Error>> {
     let family = tools::family(category)?;
     let instances: Vec<tools::Instance> =
         choose_instances(&family, category, &a.instances)?.into_iter().cloned().collect();
-    let asset = graspd_sim::hand::HandAsset::default_sih()?;
+    let asset = a.grasp.hand_asset()?;
     let planner = make_planner(&asset, category, a.seed, &a.grasp)?;
     let threads = a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let t_build = Instant::now();

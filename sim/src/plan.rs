@@ -298,6 +298,18 @@ impl GraspPlanner {
     /// Plans in-process, episodes start at the pre-grasp.
     pub fn new(hand: &HandModel, category: Category, seed: u64) -> Result<Self, SimError> {
         let demo = Demonstration::builtin(category).map_err(engine_error)?;
+        Self::with_demonstration(hand, category, seed, demo)
+    }
+
+    /// [`Self::new`] with `demo` instead of the bundled demonstration (made
+    /// with `hand`: checked here).
+    pub fn with_demonstration(
+        hand: &HandModel,
+        category: Category,
+        seed: u64,
+        demo: Demonstration,
+    ) -> Result<Self, SimError> {
+        demo.check_hand(hand).map_err(|e| engine_error(format!("{e} (give its demonstration with --demo)")))?;
         let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {}).map_err(engine_error)?;
         let solver = GraspSolver::new(hand, SolveOptions { seed, ..SolveOptions::default() });
         Ok(Self {

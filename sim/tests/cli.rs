@@ -166,3 +166,35 @@ fn a_daemon_that_is_down_is_a_clear_error() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("inprocess"));
 }
+
+/// Episodes with another hand and its demonstration (here the bundled hand
+/// and mug demonstration under other names) are those of the bundled hand,
+/// step for step; the bundled demonstration is refused for it.
+#[test]
+fn a_task_runs_with_another_hand_and_its_demonstration() {
+    let dir = tempfile::tempdir().unwrap();
+    let assets = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets");
+    let renamed = |from: &str, to: &str| {
+        let text = std::fs::read_to_string(assets.join(from)).unwrap();
+        let text =
+            text.replace("palm_to_if_proximal", "palm_to_index_base").replace("\"sih_right\"", "\"sih_renamed\"");
+        let path = dir.path().join(to);
+        std::fs::write(&path, text).unwrap();
+        path.to_str().unwrap().to_owned()
+    };
+    let urdf = renamed("hands/sih_right/sih_right.urdf", "hand.urdf");
+    let keypoints = renamed("hands/sih_right/keypoints.json", "keypoints.json");
+    let demo = renamed("demos/mug.json", "mug.json");
+    let base = ["place", "--instances", "mug_canonical", "--episodes", "2", "--json"];
+    let hand = ["--hand-urdf", urdf.as_str(), "--hand-keypoints", keypoints.as_str()];
+    let returns = |v: &serde_json::Value| -> Vec<f64> {
+        v["results"][0]["episodes"].as_array().unwrap().iter().map(|e| e["episode_return"].as_f64().unwrap()).collect()
+    };
+    let bundled = sim(&base);
+    let other = sim(&[&base[..], &hand, &["--demo", demo.as_str()]].concat());
+    assert_eq!(returns(&other), returns(&bundled));
+    let out = Command::new(env!("CARGO_BIN_EXE_sim")).args([&base[..], &hand].concat()).output().unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("made with hand `sih_right`, not `sih_renamed`") && err.contains("--demo"), "{err}");
+}
