@@ -36,6 +36,16 @@ fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
 }
 
+/// A bundled demonstration and its wrist pose as `--wrist` takes it.
+fn bundled_demo(category: &str) -> (Value, String) {
+    let path = repo().join(format!("assets/demos/{category}.json"));
+    let demo: Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+    let p = &demo["wrist_pose_tool"];
+    let numbers = p["translation"].as_array().unwrap().iter().chain(p["rotation_xyzw"].as_array().unwrap());
+    let wrist = numbers.map(|x| format!("{}", f(x))).collect::<Vec<_>>().join(" ");
+    (demo, wrist)
+}
+
 fn write(dir: &Path, name: &str, v: &Value) -> String {
     let p = dir.join(name);
     std::fs::write(&p, serde_json::to_string_pretty(v).unwrap()).unwrap();
@@ -178,17 +188,7 @@ fn bundled_demonstrations_pass_their_checks() {
 #[test]
 fn demo_author_reproduces_the_bundled_demo_and_refuses_bad_poses() {
     let dir = tempfile::tempdir().unwrap();
-    let bundled: Value =
-        serde_json::from_str(&std::fs::read_to_string(repo().join("assets/demos/drill.json")).unwrap()).unwrap();
-    let p = &bundled["wrist_pose_tool"];
-    let wrist: Vec<String> = p["translation"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .chain(p["rotation_xyzw"].as_array().unwrap())
-        .map(|x| format!("{}", f(x)))
-        .collect();
-    let wrist = wrist.join(" ");
+    let (bundled, wrist) = bundled_demo("drill");
     let out = dir.path().join("drill.json");
     let v =
         json(&["demo", "author", "--category", "drill", "--wrist", &wrist, "--out", out.to_str().unwrap(), "--json"]);
@@ -353,33 +353,14 @@ fn hand_info_loads_another_hand_and_refuses_a_broken_one() {
 #[test]
 fn another_hand_authors_its_demonstration_and_grasps_with_it() {
     let dir = tempfile::tempdir().unwrap();
-    let renamed = |from: &str, to: &str| {
-        let text = std::fs::read_to_string(repo().join(from)).unwrap();
-        let text =
-            text.replace("palm_to_if_proximal", "palm_to_index_base").replace("\"sih_right\"", "\"sih_renamed\"");
-        let path = dir.path().join(to);
-        std::fs::write(&path, text).unwrap();
-        path.to_str().unwrap().to_owned()
-    };
-    let urdf = renamed("assets/hands/sih_right/sih_right.urdf", "hand.urdf");
-    let keypoints = renamed("assets/hands/sih_right/keypoints.json", "keypoints.json");
-    let hand = ["--hand-urdf", urdf.as_str(), "--hand-keypoints", keypoints.as_str()];
+    let renamed = graspd::hand::renamed::write(dir.path()).unwrap();
+    let hand = renamed.args();
     let info = json(&[&["hand", "info", "--json"][..], &hand].concat());
     assert_eq!(info["name"], "sih_renamed", "{info}");
 
-    let bundled: Value =
-        serde_json::from_str(&std::fs::read_to_string(repo().join("assets/demos/mug.json")).unwrap()).unwrap();
-    let p = &bundled["wrist_pose_tool"];
-    let wrist: Vec<String> = p["translation"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .chain(p["rotation_xyzw"].as_array().unwrap())
-        .map(|x| format!("{}", f(x)))
-        .collect();
-    let demo = dir.path().join("mug.json");
+    let (_, wrist) = bundled_demo("mug");
+    let demo = dir.path().join("authored.json");
     let demo = demo.to_str().unwrap();
-    let wrist = wrist.join(" ");
     let authored = json(
         &[&["demo", "author", "--category", "mug", "--wrist", &wrist, "--out", demo, "--json"][..], &hand].concat(),
     );

@@ -654,17 +654,9 @@ fn a_configured_hand_serves_grasp_under_its_own_names() {
     let f = fixture();
     let dir = tempfile::tempdir().unwrap();
     let assets = Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets");
-    let renamed = |from: &str, to: &str| {
-        let text = std::fs::read_to_string(assets.join(from)).unwrap();
-        let text =
-            text.replace("palm_to_if_proximal", "palm_to_index_base").replace("\"sih_right\"", "\"sih_renamed\"");
-        let path = dir.path().join(to);
-        std::fs::write(&path, text).unwrap();
-        path.to_str().unwrap().to_owned()
-    };
-    let urdf = renamed("hands/sih_right/sih_right.urdf", "hand.urdf");
-    let keypoints = renamed("hands/sih_right/keypoints.json", "keypoints.json");
-    let demo = renamed("demos/mug.json", "mug.json");
+    let renamed = graspd::hand::renamed::write(dir.path()).unwrap();
+    let (urdf, keypoints) = (renamed.urdf.to_str().unwrap(), renamed.keypoints.to_str().unwrap());
+    let demo = renamed.mug_demo.to_str().unwrap();
     let hand = format!("hand_urdf = \"{urdf}\"\nhand_keypoints = \"{keypoints}\"\n");
     let d = Daemon::start("hand", &format!("{hand}[demos]\nmug = \"{demo}\""));
     let g = d.client().grasp("mug", &f.views[0].1, TIMEOUT).unwrap();

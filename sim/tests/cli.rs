@@ -173,25 +173,15 @@ fn a_daemon_that_is_down_is_a_clear_error() {
 #[test]
 fn a_task_runs_with_another_hand_and_its_demonstration() {
     let dir = tempfile::tempdir().unwrap();
-    let assets = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets");
-    let renamed = |from: &str, to: &str| {
-        let text = std::fs::read_to_string(assets.join(from)).unwrap();
-        let text =
-            text.replace("palm_to_if_proximal", "palm_to_index_base").replace("\"sih_right\"", "\"sih_renamed\"");
-        let path = dir.path().join(to);
-        std::fs::write(&path, text).unwrap();
-        path.to_str().unwrap().to_owned()
-    };
-    let urdf = renamed("hands/sih_right/sih_right.urdf", "hand.urdf");
-    let keypoints = renamed("hands/sih_right/keypoints.json", "keypoints.json");
-    let demo = renamed("demos/mug.json", "mug.json");
+    let renamed = graspd::hand::renamed::write(dir.path()).unwrap();
     let base = ["place", "--instances", "mug_canonical", "--episodes", "2", "--json"];
-    let hand = ["--hand-urdf", urdf.as_str(), "--hand-keypoints", keypoints.as_str()];
+    let hand = renamed.args();
+    let demo = renamed.mug_demo.to_str().unwrap();
     let returns = |v: &serde_json::Value| -> Vec<f64> {
         v["results"][0]["episodes"].as_array().unwrap().iter().map(|e| e["episode_return"].as_f64().unwrap()).collect()
     };
     let bundled = sim(&base);
-    let other = sim(&[&base[..], &hand, &["--demo", demo.as_str()]].concat());
+    let other = sim(&[&base[..], &hand, &["--demo", demo]].concat());
     assert_eq!(returns(&other), returns(&bundled));
     let out = Command::new(env!("CARGO_BIN_EXE_sim")).args([&base[..], &hand].concat()).output().unwrap();
     assert!(!out.status.success());

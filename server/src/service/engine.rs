@@ -464,27 +464,13 @@ mod tests {
         assert_eq!(register_options(&h).unwrap_err().code, StatusCode::InvalidArgument);
     }
 
-    /// The bundled hand with its robot and one actuated joint renamed, its
-    /// keypoints file to match, and (when `demo`) the mug demonstration for
-    /// it: the same kinematics under other names, written to `dir`.
+    /// The bundled hand under other names (`hand::renamed`) and, when
+    /// `demo`, its mug demonstration.
     fn renamed_hand(dir: &Path, demo: bool) -> GraspSources {
-        let hands = Path::new(crate::hand::SIH_ASSET_DIR);
-        let rename = |text: String| {
-            text.replace("palm_to_if_proximal", "palm_to_index_base").replace("\"sih_right\"", "\"sih_renamed\"")
-        };
-        let urdf = rename(std::fs::read_to_string(hands.join("sih_right.urdf")).unwrap());
-        let keypoints = rename(std::fs::read_to_string(hands.join("keypoints.json")).unwrap());
-        assert!(urdf.contains("palm_to_index_base") && urdf.contains("\"sih_renamed\""));
-        let (u, k) = (dir.join("hand.urdf"), dir.join("keypoints.json"));
-        std::fs::write(&u, urdf).unwrap();
-        std::fs::write(&k, keypoints).unwrap();
-        let mut sources = GraspSources { hand: Some((u, k)), demos: BTreeMap::new() };
+        let h = crate::hand::renamed::write(dir).unwrap();
+        let mut sources = GraspSources { hand: Some((h.urdf, h.keypoints)), demos: BTreeMap::new() };
         if demo {
-            let path = Demonstration::builtin_path(Category::Mug);
-            let text = rename(std::fs::read_to_string(path).unwrap());
-            assert!(text.contains("palm_to_index_base") && text.contains("\"sih_renamed\""));
-            std::fs::write(dir.join("mug.json"), text).unwrap();
-            sources.demos.insert("mug".into(), dir.join("mug.json"));
+            sources.demos.insert("mug".into(), h.mug_demo);
         }
         sources
     }
