@@ -341,13 +341,9 @@ impl Demonstration {
     /// actuated joints, and its keypoints by name.
     pub fn check_hand(&self, hand: &HandModel) -> Result<(), GraspError> {
         if self.hand != hand.name() {
-            return Err(GraspError::InvalidOption {
-                what: "demonstration",
-                reason: format!(
-                    "made with hand `{}`, not `{}` (author one for it: `graspd demo author --hand-urdf ... --hand-keypoints ...`)",
-                    self.hand,
-                    hand.name()
-                ),
+            return Err(GraspError::DemonstrationOfAnotherHand {
+                demo_hand: self.hand.clone(),
+                hand: hand.name().into(),
             });
         }
         self.grasp_at(hand, &Isometry3::identity())?;

@@ -185,6 +185,10 @@ pub enum GraspError {
     InvalidOption { what: &'static str, reason: String },
     #[error("{what} is not finite")]
     NonFinite { what: &'static str },
+    #[error(
+        "the demonstration was made with hand `{demo_hand}`, not `{hand}` (author one with it: `graspd demo author --hand-urdf U --hand-keypoints K`)"
+    )]
+    DemonstrationOfAnotherHand { demo_hand: String, hand: String },
 }
 
 /// The paper's Table I metric: mean distance between the grasp's keypoints
