@@ -283,7 +283,7 @@ impl GraspAssets {
             None => Demonstration::builtin(category),
         }
         .map_err(|e| format!("demonstration: {e}"))?;
-        demo.check_hand(hand).map_err(|e| format!("demonstration: {e}"))?;
+        demo.check_hand(hand).map_err(|e| e.to_string())?;
         let demo_keypoints = demo.keypoints(hand).map_err(|e| format!("demonstration: {e}"))?;
         let canonical_mesh = crate::tools::family(category)
             .map_err(|e| e.to_string())?
