@@ -217,6 +217,13 @@ pub struct Demonstration {
     /// rest on a trigger (drill).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub penetration_margin_m: Option<f64>,
+    /// Carried to another tool, no hand keypoint is held further from the
+    /// registered surface than it was from the demonstration's tool (a
+    /// hook through a mug's handle, which a larger mug's stretch would
+    /// hold short); absent or false, the offsets follow the deformation (a
+    /// pinch then closes tighter on a smaller tool).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub keep_surface_offsets: bool,
 }
 
 fn default_true() -> bool {
@@ -333,6 +340,7 @@ impl Demonstration {
             table: true,
             free_fingers: Vec::new(),
             penetration_margin_m: None,
+            keep_surface_offsets: false,
         }
     }
 

@@ -931,6 +931,7 @@ fn transferring_onto_the_demonstration_tool_returns_the_demonstration() {
         targets: targets.clone(),
         collider: ToolCollider::new(&moved_mesh, Isometry3::identity()).unwrap(),
         mesh: moved_mesh,
+        demo_offsets_m: Vec::new(),
         elapsed_ms: 0.0,
     };
     let mut solver = GraspSolver::new(&hand, SolveOptions::default());
@@ -981,9 +982,10 @@ fn solver_targets_keep_the_hands_offsets_from_a_scaled_up_surface() {
         targets: targets.clone(),
         collider: ToolCollider::new(&mesh, Isometry3::identity()).unwrap(),
         mesh: mesh.clone(),
+        demo_offsets_m: Vec::new(),
         elapsed_ms: 0.0,
     };
-    let solved = tool(scale).solver_targets();
+    let solved = tool(scale).solver_targets(false);
     let expected = [
         Point3::new(0.01, 0.0, scale * radius + 0.010 / scale),
         Point3::new(-0.02, scale * radius + 0.030 / scale, 0.0),
@@ -995,8 +997,40 @@ fn solver_targets_keep_the_hands_offsets_from_a_scaled_up_surface() {
         assert!((got - want).norm() < 2e-4, "{got:?} vs {want:?}");
     }
     for s in [1.0, 0.9] {
-        assert_eq!(tool(s).solver_targets(), targets);
+        assert_eq!(tool(s).solver_targets(false), targets);
     }
+    // Keeping the demonstrated offsets (4, 40, 3 and 8 mm): none is held
+    // further off than that, a closer one and the one inside stay; at scale
+    // 1 as well, the scale's share taken out first above it.
+    let kept =
+        |s: f64| TransferredTool { demo_offsets_m: vec![0.004, 0.040, 0.003, 0.008], ..tool(s) }.solver_targets(true);
+    let expected = [
+        Point3::new(0.01, 0.0, radius + 0.004),
+        Point3::new(-0.02, radius + 0.030, 0.0),
+        Point3::new(0.0, 0.0, radius - 0.006),
+        Point3::new(0.07 + 0.008, 0.0, 0.0),
+    ];
+    let at_one = TransferredTool {
+        demo_offsets_m: vec![0.004, 0.040, 0.003, 0.008],
+        mesh: cylinder_x_mesh(radius, 0.07, 64),
+        collider: ToolCollider::new(&cylinder_x_mesh(radius, 0.07, 64), Isometry3::identity()).unwrap(),
+        targets: vec![
+            Point3::new(0.01, 0.0, radius + 0.010),
+            Point3::new(-0.02, radius + 0.030, 0.0),
+            Point3::new(0.0, 0.0, radius - 0.006),
+            Point3::new(0.07 + 0.012, 0.0, 0.0),
+        ],
+        ..tool(1.0)
+    };
+    for (got, want) in at_one.solver_targets(true).iter().zip(&expected) {
+        assert!((got - want).norm() < 2e-4, "{got:?} vs {want:?}");
+    }
+    let scaled = kept(scale);
+    assert!((scaled[0] - Point3::new(0.01, 0.0, scale * radius + 0.004)).norm() < 2e-4, "{:?}", scaled[0]);
+    assert!((scaled[1] - Point3::new(-0.02, scale * radius + 0.030 / scale, 0.0)).norm() < 2e-4, "{:?}", scaled[1]);
+    // Without known offsets (empty), keeping them changes nothing.
+    let unknown = TransferredTool { demo_offsets_m: Vec::new(), ..tool(1.0) }.solver_targets(true);
+    assert!(unknown.iter().zip(&targets).all(|(a, b)| (a - b).norm() < 1e-12), "{unknown:?}");
 }
 
 #[test]
