@@ -235,8 +235,8 @@ mod tests {
             ("service_prefix = \"a/b\"", "service_prefix"),
             ("slow_request_ms = -1.0", "slow_request_ms"),
             ("linger_us = 1000000", "linger_us"),
-            ("hand_urdf = \"/tmp/h.urdf\"", "both or neither"),
-            ("[demos]\nspoon = \"/tmp/s.json\"", "spoon"),
+            ("hand_urdf = \"/etc/graspd/h.urdf\"", "both or neither"),
+            ("[demos]\nspoon = \"/etc/graspd/s.json\"", "spoon"),
         ] {
             let dir = tempfile::tempdir().unwrap();
             let p = dir.path().join("c.toml");
