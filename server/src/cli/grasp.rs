@@ -301,8 +301,7 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
     let category: Category = a.category.parse()?;
     let hand = a.hand.load()?;
     let demo = load_demo(a.demo.as_ref(), category)?;
-    demo.check_hand(&hand)?;
-    let demo_keypoints = demo.keypoints(&hand)?;
+    let demo_keypoints = demo.checked_keypoints(&hand)?;
     let canonical = canonical_instance(category)?;
     let cloud = graspd::io::read_cloud(&a.cloud)?;
     let (up, viewpoint) = a.view.parse()?;
@@ -451,7 +450,7 @@ pub fn run_eval(a: EvalGraspArgs) -> CliResult {
     let category: Category = a.category.parse()?;
     let hand = a.hand.load()?;
     let mut demo = load_demo(a.demo.as_ref(), category)?;
-    demo.check_hand(&hand)?;
+    demo.checked_keypoints(&hand)?;
     if let Some(mm) = a.margin_mm {
         demo.penetration_margin_m = Some(1e-3 * mm);
     }

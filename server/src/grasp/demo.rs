@@ -344,10 +344,11 @@ impl Demonstration {
         }
     }
 
-    /// Checks that the demonstration was made with `hand`: the hand's name
-    /// (the URDF robot's), a value within its limits for each of its
-    /// actuated joints, and its keypoints by name.
-    pub fn check_hand(&self, hand: &HandModel) -> Result<(), GraspError> {
+    /// The keypoints in the tool frame ([`Self::keypoints`]), once the
+    /// demonstration is checked to be `hand`'s: the hand's name (the URDF
+    /// robot's) and a value within its limits for each of its actuated
+    /// joints as well.
+    pub fn checked_keypoints(&self, hand: &HandModel) -> Result<Vec<Point3<f64>>, GraspError> {
         if self.hand != hand.name() {
             return Err(GraspError::DemonstrationOfAnotherHand {
                 demo_hand: self.hand.clone(),
@@ -355,7 +356,7 @@ impl Demonstration {
             });
         }
         self.grasp_at(hand, &Isometry3::identity())?;
-        self.keypoints(hand).map(|_| ())
+        self.keypoints(hand)
     }
 
     /// The demonstrated grasp with the tool at `tool_pose_world` (the CG

@@ -2,7 +2,7 @@
 //! wire requests into engine calls and of engine results into wire bodies.
 
 use crate::grasp::transfer::{solve_transferred, TransferModel, TransferredTool};
-use crate::grasp::{Demonstration, GraspSolver, PreGraspOptions, SolveOptions};
+use crate::grasp::{Demonstration, GraspError, GraspSolver, PreGraspOptions, SolveOptions};
 use crate::hand::HandModel;
 use crate::shape::{builtin, RegisterOptions, Registrar, ShapeSpace};
 use crate::tools::{Category, Split};
@@ -283,8 +283,10 @@ impl GraspAssets {
             None => Demonstration::builtin(category),
         }
         .map_err(|e| format!("demonstration: {e}"))?;
-        demo.check_hand(hand).map_err(|e| e.to_string())?;
-        let demo_keypoints = demo.keypoints(hand).map_err(|e| format!("demonstration: {e}"))?;
+        let demo_keypoints = demo.checked_keypoints(hand).map_err(|e| match e {
+            GraspError::DemonstrationOfAnotherHand { .. } => e.to_string(),
+            e => format!("demonstration: {e}"),
+        })?;
         let canonical_mesh = crate::tools::family(category)
             .map_err(|e| e.to_string())?
             .into_iter()
