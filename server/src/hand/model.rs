@@ -610,6 +610,18 @@ fn convert_collision(
     let mut push = |origin: Isometry3<f64>, shape: CollisionShape| {
         out.push(CollisionPrimitive { link, name: c.name.clone(), origin, shape });
     };
+    // Our primitives have no capsule: a cylinder along the frame's z and a
+    // sphere at each end (one sphere where the segment has no length).
+    let mut push_capsule = |frame: Isometry3<f64>, radius: f64, half_length: f64| {
+        if half_length > 0.0 {
+            push(frame, CollisionShape::Cylinder { radius, half_length });
+            for s in [-1.0, 1.0] {
+                push(frame * Translation3::new(0.0, 0.0, s * half_length), CollisionShape::Sphere { radius });
+            }
+        } else {
+            push(frame, CollisionShape::Sphere { radius });
+        }
+    };
     match &c.geometry {
         urdf_rs::Geometry::Box { size } => {
             let [x, y, z] = size.0;
@@ -625,15 +637,10 @@ fn convert_collision(
             push(origin, CollisionShape::Cylinder { radius, half_length });
         }
         urdf_rs::Geometry::Capsule { radius, length } => {
-            // URDF 1.2 capsule: `length` is the cylindrical part along z. Our
-            // primitives have no capsule, so it becomes a cylinder and two caps.
+            // URDF 1.2 capsule: `length` is the cylindrical part along z.
             let radius = positive("capsule radius", *radius)?;
             let half_length = positive("capsule length", *length)? / 2.0;
-            push(origin, CollisionShape::Cylinder { radius, half_length });
-            for s in [-1.0, 1.0] {
-                let cap = origin * Translation3::new(0.0, 0.0, s * half_length);
-                push(cap, CollisionShape::Sphere { radius });
-            }
+            push_capsule(origin, radius, half_length);
         }
         urdf_rs::Geometry::Mesh { filename, scale } => {
             // The capsule enclosing the mesh (`mesh_collision`): a part of
@@ -659,18 +666,7 @@ fn convert_collision(
                 1e3 * capsule.radius,
                 2e3 * capsule.half_length
             );
-            let frame = origin * capsule.frame;
-            if capsule.half_length > 0.0 {
-                push(frame, CollisionShape::Cylinder { radius: capsule.radius, half_length: capsule.half_length });
-                for s in [-1.0, 1.0] {
-                    push(
-                        frame * Translation3::new(0.0, 0.0, s * capsule.half_length),
-                        CollisionShape::Sphere { radius: capsule.radius },
-                    );
-                }
-            } else {
-                push(frame, CollisionShape::Sphere { radius: capsule.radius });
-            }
+            push_capsule(origin * capsule.frame, capsule.radius, capsule.half_length);
         }
     }
     Ok(())
