@@ -360,7 +360,10 @@ fn make_planner(
         Some(path) => {
             GraspPlanner::with_demonstration(asset.model(), category, seed, graspd::grasp::Demonstration::load(path)?)?
         }
-        None => GraspPlanner::new(asset.model(), category, seed)?,
+        None => GraspPlanner::new(asset.model(), category, seed).map_err(|e| {
+            let hint = if a.hand_urdf.is_some() { " (give that hand's demonstration with --demo)" } else { "" };
+            format!("{e}{hint}")
+        })?,
     };
     planner = planner.with_start(start);
     if !(a.camera_noise_scale.is_finite() && a.camera_noise_scale >= 0.0) {

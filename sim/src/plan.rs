@@ -309,7 +309,7 @@ impl GraspPlanner {
         seed: u64,
         demo: Demonstration,
     ) -> Result<Self, SimError> {
-        demo.checked_keypoints(hand).map_err(|e| engine_error(format!("{e} (give its demonstration with --demo)")))?;
+        demo.checked_keypoints(hand).map_err(engine_error)?;
         let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {}).map_err(engine_error)?;
         let solver = GraspSolver::new(hand, SolveOptions { seed, ..SolveOptions::default() });
         Ok(Self {
