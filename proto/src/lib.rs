@@ -150,8 +150,9 @@ impl core::fmt::Display for StatusCode {
 
 /// Values of [`RequestHeader::table_mode`] (Grasp; GIVEN also Register).
 pub mod table_mode {
-    /// Grasp: table plane at the lowest point of the cloud or of the
-    /// registered shape, when the cloud's frame is z up (`up_in_cloud` = (0,
+    /// Grasp: table plane at the lowest point of the cloud (its stray points
+    /// set aside: see `Registration::stray_points`) or of the registered
+    /// shape, when the cloud's frame is z up (`up_in_cloud` = (0,
     /// 0, 1)); no table otherwise. The registration is not told of it.
     pub const AUTO: u32 = 0;
     pub const NONE: u32 = 1;
@@ -433,7 +434,8 @@ pub struct Registration {
     /// (a mug whose handle is hidden): the orientation is not determined by this view.
     pub ambiguous_pose: u32,
     /// Points set aside as stray before the fit (isolated points: flying
-    /// pixels, speckle, segmentation leaks); of `points`.
+    /// pixels, speckle, segmentation leaks; points far from the cloud's
+    /// bulk); of `points`.
     pub stray_points: u32,
     /// One of [`viewpoint_source`].
     pub viewpoint_source: u32,

@@ -8,7 +8,7 @@ use super::space::spaces_dir;
 use super::{print_json, progress_bar, CliResult};
 use clap::Args;
 use graspd::eval::grasp::{evaluate_grasps, percentile, GraspEvalOptions};
-use graspd::grasp::transfer::{solve_transferred, TransferModel, TransferredTool};
+use graspd::grasp::transfer::{is_z_up, solve_transferred, TransferModel, TransferredTool};
 use graspd::grasp::{Demonstration, Grasp, GraspSolver, GraspTargets, PoseFile, PreGraspOptions, Scene, SolveOptions};
 use graspd::hand::HandModel;
 use graspd::shape::{builtin, RegisterOptions, Registrar};
@@ -50,7 +50,8 @@ pub struct GraspArgs {
     view: ViewArgs,
     /// Table top height in the cloud's frame (z up); the registration then also
     /// holds the tool's lowest point on it. Default: the lowest point of the
-    /// cloud or of the registered shape, whichever is lower (grasp only).
+    /// cloud (stray points set aside) or of the registered shape, whichever
+    /// is lower (grasp only).
     #[arg(long, allow_hyphen_values = true)]
     table_z: Option<f64>,
     /// No table plane.
@@ -322,17 +323,12 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
     if !reg.fit.confident {
         warnings.push("the registration is not confident: the cloud may not be a tool of this category".to_owned());
     }
-    let z_up = up.is_some_and(|u| {
-        let n = (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]).sqrt();
-        u[2] / n > 1.0 - 1e-9
-    });
     let table_z = if a.no_table {
         None
     } else if let Some(z) = a.table_z {
         Some(z)
-    } else if z_up {
-        let lowest_cloud = cloud.iter().map(|p| p.z).fold(f64::INFINITY, f64::min);
-        Some(lowest_cloud.min(tool.lowest_z()))
+    } else if is_z_up(up) {
+        Some(tool.table_z_under(&reg))
     } else {
         warnings.push("no table: the cloud's frame is not z-up (give --table-z for one)".to_owned());
         None

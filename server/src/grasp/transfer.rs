@@ -252,6 +252,24 @@ impl TransferredTool {
     pub fn lowest_z(&self) -> f64 {
         self.mesh.vertices.iter().map(|p| p.z).fold(f64::INFINITY, f64::min)
     }
+
+    /// The table under a tool registered in a z-up cloud when none is
+    /// given: the lower of the cloud's lowest kept point and the registered
+    /// shape's. The kept points, not all: one flying pixel 30 cm under a mug
+    /// put the table there and the grasp's fingers free to pass through
+    /// the real one.
+    pub fn table_z_under(&self, reg: &Registration) -> f64 {
+        reg.lowest_kept_z.min(self.lowest_z())
+    }
+}
+
+/// Whether `up` (the world's up in the cloud's frame) is the cloud's +z:
+/// a table is then a plane z = const.
+pub fn is_z_up(up: Option<[f64; 3]>) -> bool {
+    up.is_some_and(|u| {
+        let n = (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]).sqrt();
+        u[2] / n > 1.0 - 1e-9
+    })
 }
 
 /// A transferred grasp with its baselines and pre-grasp.

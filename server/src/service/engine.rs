@@ -1,7 +1,7 @@
 //! The engine behind the service: loaded categories, and the conversion of
 //! wire requests into engine calls and of engine results into wire bodies.
 
-use crate::grasp::transfer::{solve_transferred, TransferModel, TransferredTool};
+use crate::grasp::transfer::{is_z_up, solve_transferred, TransferModel, TransferredTool};
 use crate::grasp::{Demonstration, GraspError, GraspSolver, PreGraspOptions, SolveOptions};
 use crate::hand::HandModel;
 use crate::shape::{builtin, RegisterOptions, Registrar, ShapeSpace};
@@ -226,14 +226,10 @@ impl Engine {
         if !reg.fit.confident {
             warnings |= proto::grasp_warning::REGISTRATION_NOT_CONFIDENT;
         }
-        let z_up = opts.up.is_some_and(|u| {
-            let n = (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]).sqrt();
-            u[2] / n > 1.0 - 1e-9
-        });
         let table_z = match header.table_mode {
             proto::table_mode::NONE => None,
             proto::table_mode::GIVEN => Some(header.table_z_m as f64),
-            _ if z_up => Some(cloud.iter().map(|p| p.z).fold(f64::INFINITY, f64::min).min(tool.lowest_z())),
+            _ if is_z_up(opts.up) => Some(tool.table_z_under(&reg)),
             _ => {
                 warnings |= proto::grasp_warning::NO_TABLE_FRAME_NOT_Z_UP;
                 None
@@ -496,6 +492,35 @@ mod tests {
         h.protocol_version = proto::PROTOCOL_VERSION;
         h.up_in_cloud = [0.0, 0.0, 1.0];
         h
+    }
+
+    /// Grasp's table when none is given lies under the points the fit kept:
+    /// a flying pixel under the mug (far, or near enough for the stray test)
+    /// neither lowers it nor changes the grasp; before, the lowest point of
+    /// the whole cloud was the table.
+    #[test]
+    fn a_stray_point_under_the_tool_is_not_the_table() {
+        let cache = Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/spaces");
+        let (engine, _) = Engine::load(&["mug".to_string()], &cache, &GraspSources::default()).unwrap();
+        let (cloud, h) = (mug_view(), grasp_header());
+        let plain = engine.grasp(0, &cloud, &h).unwrap();
+        assert_eq!(plain.table_used, 1);
+        let lowest = cloud.iter().map(|p| p.0[2]).fold(f32::INFINITY, f32::min) as f64;
+        assert!((plain.table_z_m - lowest).abs() < 0.003, "table {} under a view down to {lowest}", plain.table_z_m);
+        let centre = cloud.iter().fold([0.0f32; 3], |c, p| [c[0] + p.0[0], c[1] + p.0[1], c[2] + p.0[2]]);
+        let [x, y] = [centre[0], centre[1]].map(|v| v / cloud.len() as f32);
+        for (below_m, same) in [(0.3, true), (0.04, false)] {
+            let mut stray = cloud.clone();
+            stray.push(proto::Point([x, y, lowest as f32 - below_m]));
+            let r = engine.grasp(0, &stray, &h).unwrap();
+            assert!((r.table_z_m - plain.table_z_m).abs() < 1e-3, "{below_m}: {} vs {}", r.table_z_m, plain.table_z_m);
+            if same {
+                assert_eq!(r.registration.stray_points, plain.registration.stray_points + 1);
+                assert_eq!(r.table_z_m, plain.table_z_m);
+                assert_eq!(r.grasp.actuated, plain.grasp.actuated);
+                assert_eq!(r.grasp.translation_cloud_from_wrist_m, plain.grasp.translation_cloud_from_wrist_m);
+            }
+        }
     }
 
     /// A hand and demonstration named by the configuration are the ones

@@ -27,7 +27,7 @@
 use super::estep::{dist2, EStep, P3};
 use super::freespace::FreeSpace;
 use super::grid::RadiusGrid;
-use super::sampling::{drop_stray_points, even_subsample, subsample};
+use super::sampling::{drop_far_points, drop_stray_points, even_subsample, subsample, BulkBox};
 use super::space::{AnchoredModel, LinearModel, NamedPoint, ShapeSpace};
 use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
 use rand::SeedableRng;
@@ -56,7 +56,7 @@ pub enum RegisterError {
     NonFinite(usize),
     #[error("cloud has {got} points; a fit needs at least {need}")]
     TooFewPoints { got: usize, need: usize },
-    #[error("cloud has no extent (all points at one place)")]
+    #[error("cloud has no extent (all its points, or all but a few, at one place)")]
     Degenerate,
     #[error("cloud extent {extent_m:.3} m is not a hand-held tool's (expected {min_m} to {max_m} m); check the units")]
     AbsurdScale { extent_m: f64, min_m: f64, max_m: f64 },
@@ -435,6 +435,10 @@ pub struct Registration {
     /// as well as the reported pose; None when no yaw sweep ran (no up
     /// direction, or `yaw_sweep_steps` below 4).
     pub yaw_arc: Option<YawArc>,
+    /// The lowest z of the cloud's points the fit kept (stray and far points
+    /// set aside), cloud frame, metres: for a z-up cloud, no higher than the
+    /// table the tool stands on (`graspd grasp`'s table when none is given).
+    pub lowest_kept_z: f64,
 }
 
 /// The arc of turns a view leaves open (`RegisterOptions::yaw_sweep_steps`):
@@ -653,7 +657,8 @@ impl Registrar {
         check(cloud)?;
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed);
         let working = working_points(cloud, &mut rng);
-        let all = drop_stray_points(&working, &mut rng);
+        let bulk = check_extent(&working)?;
+        let all = drop_stray_points(&drop_far_points(&working, &bulk), &mut rng);
         let fine_x = view_subset(&all, opts.fine_points, opts.even_sampling, &mut rng);
         let race_x = subsample(&fine_x, opts.race_points, &mut rng);
         let coarse_pts = ViewPoints::new(&subsample(&race_x, opts.coarse_points, &mut rng));
@@ -1042,6 +1047,7 @@ impl Registrar {
                 }
                 _ => None,
             },
+            lowest_kept_z: all.iter().map(|p| p[2]).fold(f64::INFINITY, f64::min),
         })
     }
 
@@ -1291,8 +1297,16 @@ fn check(cloud: &[Point3<f64>]) -> Result<(), RegisterError> {
     if cloud.len() < NEED {
         return Err(RegisterError::TooFewPoints { got: cloud.len(), need: NEED });
     }
-    let (lo, hi) = cloud.iter().fold((cloud[0], cloud[0]), |(lo, hi), p| (lo.inf(p), hi.sup(p)));
-    let extent = (hi - lo).norm();
+    Ok(())
+}
+
+/// The bulk of the cloud ([`BulkBox`]) when its size is a hand-held tool's.
+/// Measured on the bulk, not the bounding box: a few far points are strays
+/// (set aside and counted), not a reason to refuse the cloud; a cloud in
+/// millimetres or kilometres is refused whatever its strays.
+fn check_extent(working: &[P3]) -> Result<BulkBox, RegisterError> {
+    let bulk = BulkBox::of(working).ok_or(RegisterError::Empty)?;
+    let extent = bulk.diagonal();
     if extent < 1e-9 {
         return Err(RegisterError::Degenerate);
     }
@@ -1300,7 +1314,7 @@ fn check(cloud: &[Point3<f64>]) -> Result<(), RegisterError> {
     if !(min_m..=max_m).contains(&extent) {
         return Err(RegisterError::AbsurdScale { extent_m: extent, min_m, max_m });
     }
-    Ok(())
+    Ok(bulk)
 }
 
 /// The world's up as a unit vector in the cloud's frame, when known (a zero
