@@ -433,9 +433,9 @@ pub struct Registration {
     /// 1 when another pose, at least 30° away, explains the view almost as well
     /// (a mug whose handle is hidden): the orientation is not determined by this view.
     pub ambiguous_pose: u32,
-    /// Points set aside as stray before the fit (isolated points: flying
-    /// pixels, speckle, segmentation leaks; points far from the cloud's
-    /// bulk); of `points`.
+    /// Points set aside before the fit, of `points`: isolated points (flying
+    /// pixels, speckle, segmentation leaks), points far from the cloud's
+    /// bulk, and a leaking segmentation's table (see README.md).
     pub stray_points: u32,
     /// One of [`viewpoint_source`].
     pub viewpoint_source: u32,

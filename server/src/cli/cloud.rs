@@ -20,6 +20,10 @@ pub struct CloudArgs {
     /// Constant axial depth noise σ, millimetres.
     #[arg(long, default_value_t = 1.0)]
     noise_mm: f64,
+    /// The segmentation leaks onto the table: the tool's mask dilated by
+    /// this many pixels.
+    #[arg(long, default_value_t = 0)]
+    mask_leak_px: u32,
     /// Output cloud (.ply, .pcd, .xyz, .npy), world frame.
     #[arg(long)]
     out: PathBuf,
@@ -42,7 +46,8 @@ pub fn run(a: CloudArgs) -> CliResult {
     let scene = Scene::new(&mesh, Isometry3::identity(), table_z)?;
     let intrinsics = Intrinsics::default();
     let pose = standard_view(a.view, a.views, centre, mesh.diagonal(), intrinsics)?;
-    let noise = DepthNoise { sigma_m: a.noise_mm.max(0.0) * 1e-3, ..DepthNoise::default() };
+    let noise =
+        DepthNoise { sigma_m: a.noise_mm.max(0.0) * 1e-3, mask_leak_px: a.mask_leak_px, ..DepthNoise::default() };
     let cam = DepthCamera { intrinsics, world_from_camera: pose, noise };
     let view = cam.capture(&scene, a.seed)?;
     graspd::io::write_cloud(&a.out, &view.points_world)?;

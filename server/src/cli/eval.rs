@@ -21,6 +21,10 @@ pub enum EvalCommand {
         /// Fraction of outlier points added to each view.
         #[arg(long, default_value_t = 0.0)]
         outliers: f64,
+        /// The segmentation leaks onto the table: the tool's mask dilated by
+        /// this many pixels.
+        #[arg(long, default_value_t = 0)]
+        mask_leak_px: u32,
         /// Random uniform scale of each placed tool, ± this fraction.
         #[arg(long, default_value_t = 0.0)]
         scale_jitter: f64,
@@ -121,6 +125,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             views,
             noise_mm,
             outliers,
+            mask_leak_px,
             scale_jitter,
             on_side,
             full_surface,
@@ -148,7 +153,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             let family = tools::family(category)?;
             let opts = TransferEvalOptions {
                 views,
-                noise: DepthNoise { sigma_m: noise_mm.max(0.0) * 1e-3, ..DepthNoise::default() },
+                noise: DepthNoise { sigma_m: noise_mm.max(0.0) * 1e-3, mask_leak_px, ..DepthNoise::default() },
                 outliers,
                 scale_jitter,
                 on_side,
@@ -173,7 +178,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             let out = serde_json::json!({
                 "category": category.name(),
                 "views": views,
-                "noise_mm": noise_mm, "outliers": outliers, "scale_jitter": scale_jitter, "on_side": on_side, "full_surface": full_surface, "known_viewpoint": !unknown_viewpoint, "known_table": !unknown_table,
+                "noise_mm": noise_mm, "outliers": outliers, "mask_leak_px": mask_leak_px, "scale_jitter": scale_jitter, "on_side": on_side, "full_surface": full_surface, "known_viewpoint": !unknown_viewpoint, "known_table": !unknown_table,
                 "test": splits.iter().position(|s| *s == Split::Test).map(|i| &reports[i]),
                 "train": splits.iter().position(|s| *s == Split::Train).map(|i| &reports[i]),
             });

@@ -32,22 +32,28 @@ impl Default for Intrinsics {
     }
 }
 
-/// Axial depth noise σ(z) = `sigma_m` + `quadratic_per_m` · z², and random
-/// pixel dropout.
+/// Axial depth noise σ(z) = `sigma_m` + `quadratic_per_m` · z², random
+/// pixel dropout, and a segmentation that leaks onto the table.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct DepthNoise {
     pub sigma_m: f64,
     pub quadratic_per_m: f64,
     pub dropout: f64,
+    /// The tool's mask dilated by this many pixels: the table's pixels
+    /// that near the tool's silhouette are kept as the tool's (what a
+    /// learned segmentation's blurred edge gives where the tool meets the
+    /// table and around it). 0: exact segmentation.
+    #[serde(default)]
+    pub mask_leak_px: u32,
 }
 
 impl DepthNoise {
-    pub const NONE: Self = Self { sigma_m: 0.0, quadratic_per_m: 0.0, dropout: 0.0 };
+    pub const NONE: Self = Self { sigma_m: 0.0, quadratic_per_m: 0.0, dropout: 0.0, mask_leak_px: 0 };
 }
 
 impl Default for DepthNoise {
     fn default() -> Self {
-        Self { sigma_m: 0.001, quadratic_per_m: 0.0012, dropout: 0.0 }
+        Self { sigma_m: 0.001, quadratic_per_m: 0.0012, dropout: 0.0, mask_leak_px: 0 }
     }
 }
 
@@ -116,35 +122,72 @@ impl DepthCamera {
         let origin_t = tool_from_camera.translation.vector;
         let to_f32 = |v: Vector3<f64>| parry3d::math::Vector::new(v.x as f32, v.y as f32, v.z as f32);
         let unit = rand_distr::StandardNormal;
+        let ray_cam = |u: u32, v: u32| Vector3::new((u as f64 - k.cx) / k.fx, (v as f64 - k.cy) / k.fy, 1.0);
+        // Depth along the camera's z at which the ray meets the table.
+        let table_depth = |d_cam: &Vector3<f64>| {
+            let tz = scene.table_z?;
+            let d_world = self.world_from_camera.rotation * d_cam;
+            let o_world = self.world_from_camera.translation.vector;
+            let t = (tz - o_world.z) / d_world.z;
+            (d_world.z.abs() > 1e-12 && t > 0.0).then_some(t)
+        };
+        let emit = |view: &mut PartialView, rng: &mut ChaCha8Rng, d_cam: Vector3<f64>, depth: f64, px: [u32; 2]| {
+            let sigma = self.noise.sigma_m + self.noise.quadratic_per_m * depth * depth;
+            let n: f64 = if sigma > 0.0 { unit.sample(rng) } else { 0.0 };
+            let noisy = (depth + sigma * n).max(1e-6);
+            let p_cam = Point3::from(d_cam * noisy);
+            view.points_world.push(self.world_from_camera * p_cam);
+            view.points_camera.push(p_cam);
+            view.pixels.push(px);
+        };
         for v in v0..v1 {
             for u in u0..u1 {
                 // Direction with unit z in the camera frame, so the ray parameter is depth.
-                let d_cam = Vector3::new((u as f64 - k.cx) / k.fx, (v as f64 - k.cy) / k.fy, 1.0);
+                let d_cam = ray_cam(u, v);
                 let d_tool = tool_from_camera.rotation * d_cam;
                 let ray = Ray::new(to_f32(origin_t), to_f32(d_tool));
                 let Some(t_tool) = scene.tool.cast_local_ray(&ray, 100.0, true) else { continue };
                 let depth = t_tool as f64;
-                if let Some(tz) = scene.table_z {
-                    // The table hides what lies beneath it.
-                    let d_world = self.world_from_camera.rotation * d_cam;
-                    let o_world = self.world_from_camera.translation.vector;
-                    if d_world.z.abs() > 1e-12 {
-                        let t_table = (tz - o_world.z) / d_world.z;
-                        if t_table > 0.0 && t_table < depth {
-                            continue;
-                        }
-                    }
+                // The table hides what lies beneath it.
+                if table_depth(&d_cam).is_some_and(|t| t < depth) {
+                    continue;
                 }
                 if self.noise.dropout > 0.0 && rand::Rng::random::<f64>(&mut rng) < self.noise.dropout {
                     continue;
                 }
-                let sigma = self.noise.sigma_m + self.noise.quadratic_per_m * depth * depth;
-                let n: f64 = if sigma > 0.0 { unit.sample(&mut rng) } else { 0.0 };
-                let noisy = (depth + sigma * n).max(1e-6);
-                let p_cam = Point3::from(d_cam * noisy);
-                view.points_world.push(self.world_from_camera * p_cam);
-                view.points_camera.push(p_cam);
-                view.pixels.push([u, v]);
+                emit(&mut view, &mut rng, d_cam, depth, [u, v]);
+            }
+        }
+        let leak = self.noise.mask_leak_px;
+        if leak > 0 && scene.table_z.is_some() && !view.pixels.is_empty() {
+            // The mask dilated by `leak` pixels (a square): the table's pixels in it.
+            let (lu, lv) = (u0.saturating_sub(leak), v0.saturating_sub(leak));
+            let (hu, hv) = ((u1 + leak).min(k.width), (v1 + leak).min(k.height));
+            let w = (hu - lu) as usize;
+            let mut tool = vec![false; w * (hv - lv) as usize];
+            for [u, v] in &view.pixels {
+                tool[(v - lv) as usize * w + (u - lu) as usize] = true;
+            }
+            let near = |u: u32, v: u32| {
+                let (a, b) = (u.saturating_sub(leak).max(lu), v.saturating_sub(leak).max(lv));
+                let (c, d) = ((u + leak).min(hu - 1), (v + leak).min(hv - 1));
+                (b..=d).any(|y| (a..=c).any(|x| tool[(y - lv) as usize * w + (x - lu) as usize]))
+            };
+            for v in lv..hv {
+                for u in lu..hu {
+                    if tool[(v - lv) as usize * w + (u - lu) as usize] || !near(u, v) {
+                        continue;
+                    }
+                    let d_cam = ray_cam(u, v);
+                    let Some(depth) = table_depth(&d_cam) else { continue };
+                    // Not where the tool stands in front of the table (a pixel dropped out).
+                    let d_tool = tool_from_camera.rotation * d_cam;
+                    let ray = Ray::new(to_f32(origin_t), to_f32(d_tool));
+                    if scene.tool.cast_local_ray(&ray, depth as f32, true).is_some() {
+                        continue;
+                    }
+                    emit(&mut view, &mut rng, d_cam, depth, [u, v]);
+                }
             }
         }
         Ok(view)
@@ -262,7 +305,7 @@ mod tests {
         let m = box_mesh(Point3::new(-0.05, -0.05, 0.0), Point3::new(0.05, 0.05, 0.1));
         let scene = Scene::new(&m, Isometry3::identity(), None).unwrap();
         let pose = look_at(Point3::new(0.5, 0.0, 0.05), Point3::new(0.0, 0.0, 0.05), Vector3::z()).unwrap();
-        let noise = DepthNoise { sigma_m: 0.002, quadratic_per_m: 0.0, dropout: 0.0 };
+        let noise = DepthNoise { sigma_m: 0.002, quadratic_per_m: 0.0, dropout: 0.0, mask_leak_px: 0 };
         let cam = DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: pose, noise };
         let a = cam.capture(&scene, 3).unwrap();
         let b = cam.capture(&scene, 3).unwrap();
@@ -270,6 +313,35 @@ mod tests {
         let n = a.points_camera.len() as f64;
         let var = a.points_camera.iter().map(|p| (p.z - 0.45).powi(2)).sum::<f64>() / n;
         assert!((var.sqrt() - 0.002).abs() < 0.0003, "std {}", var.sqrt());
+    }
+
+    /// A leaking mask adds table points in a band about the tool's
+    /// silhouette, no wider than the dilation, and leaves the tool's own.
+    #[test]
+    fn a_leaking_mask_adds_the_tables_pixels_beside_the_tool() {
+        let m = box_mesh(Point3::new(-0.05, -0.05, 0.0), Point3::new(0.05, 0.05, 0.1));
+        let scene = Scene::new(&m, Isometry3::identity(), Some(0.0)).unwrap();
+        let pose = look_at(Point3::new(0.4, 0.1, 0.35), Point3::new(0.0, 0.0, 0.05), Vector3::z()).unwrap();
+        let cam = |leak| DepthCamera {
+            intrinsics: Intrinsics::default(),
+            world_from_camera: pose,
+            noise: DepthNoise { mask_leak_px: leak, ..DepthNoise::NONE },
+        };
+        let exact = cam(0).capture(&scene, 0).unwrap();
+        let leaky = cam(3).capture(&scene, 0).unwrap();
+        assert_eq!(leaky.points_world[..exact.points_world.len()], exact.points_world[..]);
+        let table = &leaky.points_world[exact.points_world.len()..];
+        assert!(table.len() > 100 && table.len() < exact.points_world.len() / 2, "{} table points", table.len());
+        assert!(table.iter().all(|p| p.z.abs() < 1e-9), "off the table");
+        // None under the box's footprint; beside it, or behind it where the
+        // pixels above its top edge see the table beyond.
+        for p in table {
+            let out = (p.x.abs() - 0.05).max(p.y.abs() - 0.05);
+            assert!(out > -1e-9 && out < 0.25, "{p}");
+        }
+        // In front of the box (toward the camera, +x) the band is 3 pixels: a few millimetres.
+        let front = table.iter().filter(|p| p.x > 0.05).map(|p| p.x - 0.05).fold(0.0, f64::max);
+        assert!(front > 0.001 && front < 0.008, "front band {front}");
     }
 
     #[test]

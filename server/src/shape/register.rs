@@ -27,7 +27,7 @@
 use super::estep::{dist2, EStep, P3};
 use super::freespace::FreeSpace;
 use super::grid::RadiusGrid;
-use super::sampling::{drop_far_points, drop_stray_points, even_subsample, subsample, BulkBox};
+use super::sampling::{drop_far_points, drop_stray_points, even_subsample, subsample, BulkBox, TableBand};
 use super::space::{AnchoredModel, LinearModel, NamedPoint, ShapeSpace};
 use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
 use rand::SeedableRng;
@@ -368,16 +368,20 @@ const COVERAGE_REACH: f64 = 2.5;
 /// How well the fitted shape explains the cloud.
 #[derive(Clone, Copy, Debug, Serialize, PartialEq)]
 pub struct FitQuality {
-    /// Fraction of the cloud within `inlier_mm` of the completed shape
-    /// (measured on a uniform sample of the points kept; stray points count
-    /// as outside).
+    /// Fraction of the cloud, less the table's points, within `inlier_mm`
+    /// of the completed shape (measured on a uniform sample of the points
+    /// kept; the other points set aside count as outside).
     pub inlier_fraction: f64,
-    /// Fraction of the cloud set aside as stray points before the fit
-    /// (isolated points: flying pixels, speckle, segmentation leaks).
+    /// Fraction of the cloud set aside before the fit: isolated points
+    /// (flying pixels, speckle, segmentation leaks), points far from the
+    /// cloud's bulk, and the given table's points.
     pub stray_fraction: f64,
     /// The same as a count of the cloud's points (for a cloud above
     /// [`WORKING_POINTS`], estimated from the working subsample's share).
     pub stray_points: usize,
+    /// Of `stray_points`, those set aside as the given table's
+    /// ([`TableBand`]; 0 without a table height).
+    pub table_points: usize,
     /// RMS distance of the inliers to the completed shape, millimetres.
     pub residual_mm: f64,
     pub inlier_mm: f64,
@@ -658,7 +662,9 @@ impl Registrar {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed);
         let working = working_points(cloud, &mut rng);
         let bulk = check_extent(&working)?;
-        let all = drop_stray_points(&drop_far_points(&working, &bulk), &mut rng);
+        let near = drop_far_points(&working, &bulk);
+        let tool = drop_table_points(&near, up_direction(opts), opts.support_height);
+        let all = drop_stray_points(&tool, &mut rng);
         let fine_x = view_subset(&all, opts.fine_points, opts.even_sampling, &mut rng);
         let race_x = subsample(&fine_x, opts.race_points, &mut rng);
         let coarse_pts = ViewPoints::new(&subsample(&race_x, opts.coarse_points, &mut rng));
@@ -1009,10 +1015,14 @@ impl Registrar {
         // same radius, and 10 of 72 views confident. Drawn last, so that the
         // fit's own draws are as before.
         let quality_x = subsample(&all, QUALITY_POINTS, &mut rng);
-        let mut quality = self.quality(models, &fit, &quality_x, &all, working.len() - all.len(), working.len());
+        let set_aside =
+            SetAside { stray: working.len() - all.len() - (near.len() - tool.len()), table: near.len() - tool.len() };
+        let mut quality = self.quality(models, &fit, &quality_x, &all, set_aside, working.len());
         if working.len() < cloud.len() {
-            // Strays counted on a working subsample stand for the same share of the cloud.
-            quality.stray_points = (quality.stray_fraction * cloud.len() as f64).round() as usize;
+            // Counted on a working subsample, they stand for the same share of the cloud.
+            let share = |n: usize| (n as f64 * cloud.len() as f64 / working.len() as f64).round() as usize;
+            (quality.stray_points, quality.table_points) =
+                (share(set_aside.stray + set_aside.table), share(set_aside.table));
         }
         quality.ambiguous_pose = ambiguous_pose;
         stage.quality = ms(t_stage);
@@ -1097,7 +1107,7 @@ impl Registrar {
         Pose { r, t: reg.translation_cloud_from_canonical + reg.scale * (r * c), s: reg.scale * norm.scale }
     }
 
-    /// `stray_points` of the cloud's `cloud_points` were set aside before the fit.
+    /// `set_aside` of the cloud's `cloud_points` were set aside before the fit.
     /// `x`: a uniform sample of `view`, every point kept after stray removal.
     fn quality(
         &self,
@@ -1105,10 +1115,13 @@ impl Registrar {
         fit: &Fit,
         x: &[P3],
         view: &[P3],
-        stray_points: usize,
+        set_aside: SetAside,
         cloud_points: usize,
     ) -> FitQuality {
-        let stray_fraction = 1.0 - (cloud_points - stray_points) as f64 / cloud_points as f64;
+        // The table's points are not the tool's: not counted against the fit.
+        let tool_points = (cloud_points - set_aside.table).max(1);
+        let stray_share = set_aside.stray as f64 / tool_points as f64;
+        let stray_fraction = (set_aside.stray + set_aside.table) as f64 / cloud_points as f64;
         let shape: Vec<P3> = models.surface.evaluate(&fit.latent).iter().map(|y| fit.pose.apply(y)).collect();
         // Sample spacing of the completed surface inflates nearest-point distances; allow for it.
         let size = fit.pose.s;
@@ -1125,7 +1138,7 @@ impl Registrar {
                 sum2 += d2;
             }
         }
-        let inlier_fraction = n_in as f64 / x.len().max(1) as f64 * (1.0 - stray_fraction);
+        let inlier_fraction = n_in as f64 / x.len().max(1) as f64 * (1.0 - stray_share);
         let residual_mm = if n_in > 0 { (sum2 / n_in as f64).sqrt() * 1e3 } else { f64::INFINITY };
         // Coverage on at most COVERAGE_SAMPLES of each side: a share, not an exact count.
         let thin =
@@ -1146,7 +1159,8 @@ impl Registrar {
         FitQuality {
             inlier_fraction,
             stray_fraction,
-            stray_points,
+            stray_points: set_aside.stray + set_aside.table,
+            table_points: set_aside.table,
             residual_mm,
             inlier_mm: inlier_m * 1e3,
             coverage,
@@ -1286,8 +1300,11 @@ fn working_points(cloud: &[Point3<f64>], rng: &mut rand_chacha::ChaCha8Rng) -> V
     idx.into_iter().map(|i| point(&cloud[i])).collect()
 }
 
+/// The fewest points a fit needs.
+const MIN_POINTS: usize = 20;
+
 fn check(cloud: &[Point3<f64>]) -> Result<(), RegisterError> {
-    const NEED: usize = 20;
+    const NEED: usize = MIN_POINTS;
     if cloud.is_empty() {
         return Err(RegisterError::Empty);
     }
@@ -1315,6 +1332,46 @@ fn check_extent(working: &[P3]) -> Result<BulkBox, RegisterError> {
         return Err(RegisterError::AbsurdScale { extent_m: extent, min_m, max_m });
     }
     Ok(bulk)
+}
+
+/// Points of the cloud set aside before the fit (of the working points).
+#[derive(Clone, Copy, Debug)]
+struct SetAside {
+    stray: usize,
+    table: usize,
+}
+
+/// The cloud without a table's points ([`TableBand`]) when the up
+/// direction is known: the given table's, else the one the cloud's lowest
+/// points would stand on (its 1st percentile of height: a leaking mask's
+/// table is a tenth or more of the cloud). A view that does not leak
+/// loses nothing either way.
+fn drop_table_points<'a>(x: &'a [P3], up: Option<Vector3<f64>>, table: Option<f64>) -> std::borrow::Cow<'a, [P3]> {
+    use std::borrow::Cow;
+    let Some(up) = up else { return Cow::Borrowed(x) };
+    let band = TableBand::default();
+    let heights: Vec<f64> = x.iter().map(|p| up.x * p[0] + up.y * p[1] + up.z * p[2]).collect();
+    let up = [up.x, up.y, up.z];
+    let table = match table {
+        Some(t) => t,
+        None => {
+            // On every k-th point (at most 4,096): a percentile needs no more.
+            let mut sorted: Vec<f64> = heights.iter().step_by(heights.len().div_ceil(4096)).copied().collect();
+            let k = sorted.len() / 100;
+            let lowest = *sorted.select_nth_unstable_by(k, f64::total_cmp).1;
+            match band.leaking_table(x, &heights, up, lowest) {
+                Some(t) => t,
+                None => return Cow::Borrowed(x),
+            }
+        }
+    };
+    let Some(table_point) = band.table_points(x, &heights, up, table) else { return Cow::Borrowed(x) };
+    let kept: Vec<P3> = x.iter().zip(&table_point).filter(|(_, &t)| !t).map(|(p, _)| *p).collect();
+    if kept.len() < MIN_POINTS.max(x.len() / 5) {
+        // Hardly anything but the table: fitted whole, it is answered as the poor fit it is.
+        return Cow::Borrowed(x);
+    }
+    Cow::Owned(kept)
 }
 
 /// The world's up as a unit vector in the cloud's frame, when known (a zero
