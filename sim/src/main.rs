@@ -165,6 +165,10 @@ struct GraspArgs {
     /// telling the registration's errors from the sensor's.
     #[arg(long, default_value_t = 1.0)]
     camera_noise_scale: f64,
+    /// The scene camera's segmentation leaks onto the table: the tool's
+    /// mask dilated by this many pixels (`--grasp-from register|daemon`).
+    #[arg(long, default_value_t = 0)]
+    camera_mask_leak_px: u32,
     /// URDF of another hand than the bundled SIH-like one (with
     /// --hand-keypoints; its servos take the bundled hand's gains).
     #[arg(long, requires = "hand_keypoints")]
@@ -372,6 +376,7 @@ fn make_planner(
     let mut camera = graspd_sim::camera::SceneCamera::default();
     camera.noise.sigma_m *= a.camera_noise_scale;
     camera.noise.quadratic_per_m *= a.camera_noise_scale;
+    camera.noise.mask_leak_px = a.camera_mask_leak_px;
     Ok(match from {
         GraspFrom::InProcess => planner,
         GraspFrom::Register => planner.with_engine_camera(camera, graspd_sim::camera::LabFrame::default())?,
