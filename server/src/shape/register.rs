@@ -379,8 +379,9 @@ pub struct FitQuality {
     /// The same as a count of the cloud's points (for a cloud above
     /// [`WORKING_POINTS`], estimated from the working subsample's share).
     pub stray_points: usize,
-    /// Of `stray_points`, those set aside as the given table's
-    /// ([`TableBand`]; 0 without a table height).
+    /// Of `stray_points`, those set aside as a leaking segmentation's table
+    /// ([`TableBand`]: the given table's, or the one the leak shows; 0 when
+    /// the view does not leak or no up direction is known).
     pub table_points: usize,
     /// RMS distance of the inliers to the completed shape, millimetres.
     pub residual_mm: f64,
@@ -439,8 +440,8 @@ pub struct Registration {
     /// as well as the reported pose; None when no yaw sweep ran (no up
     /// direction, or `yaw_sweep_steps` below 4).
     pub yaw_arc: Option<YawArc>,
-    /// The lowest z of the cloud's points the fit kept (stray and far points
-    /// set aside), cloud frame, metres: for a z-up cloud, no higher than the
+    /// The lowest z of the cloud's points the fit kept (stray, far and
+    /// table points set aside), cloud frame, metres: for a z-up cloud, no higher than the
     /// table the tool stands on (`graspd grasp`'s table when none is given).
     pub lowest_kept_z: f64,
 }
@@ -1304,15 +1305,14 @@ fn working_points(cloud: &[Point3<f64>], rng: &mut rand_chacha::ChaCha8Rng) -> V
 const MIN_POINTS: usize = 20;
 
 fn check(cloud: &[Point3<f64>]) -> Result<(), RegisterError> {
-    const NEED: usize = MIN_POINTS;
     if cloud.is_empty() {
         return Err(RegisterError::Empty);
     }
     if let Some(i) = cloud.iter().position(|p| !(p.x.is_finite() && p.y.is_finite() && p.z.is_finite())) {
         return Err(RegisterError::NonFinite(i));
     }
-    if cloud.len() < NEED {
-        return Err(RegisterError::TooFewPoints { got: cloud.len(), need: NEED });
+    if cloud.len() < MIN_POINTS {
+        return Err(RegisterError::TooFewPoints { got: cloud.len(), need: MIN_POINTS });
     }
     Ok(())
 }

@@ -424,8 +424,11 @@ impl BulkBox {
 
 /// The cloud without the points far from its bulk ([`BulkBox::near`]),
 /// in their order: the stray test's grid then spans the tool, not the room.
-pub fn drop_far_points(x: &[P3], bulk: &BulkBox) -> Vec<P3> {
-    x.iter().filter(|p| bulk.near(p)).copied().collect()
+pub fn drop_far_points<'a>(x: &'a [P3], bulk: &BulkBox) -> std::borrow::Cow<'a, [P3]> {
+    if x.iter().all(|p| bulk.near(p)) {
+        return std::borrow::Cow::Borrowed(x);
+    }
+    std::borrow::Cow::Owned(x.iter().filter(|p| bulk.near(p)).copied().collect())
 }
 
 /// Which points near a given table are the table's. A segmentation that
