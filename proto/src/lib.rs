@@ -150,9 +150,9 @@ impl core::fmt::Display for StatusCode {
 
 /// Values of [`RequestHeader::table_mode`] (Grasp; GIVEN also Register).
 pub mod table_mode {
-    /// Grasp: table plane at the lowest point of the cloud (its stray points
-    /// set aside: see `Registration::stray_points`) or of the registered
-    /// shape, when the cloud's frame is z up (`up_in_cloud` = (0,
+    /// Grasp: table plane at the height a segmentation leaking onto it
+    /// shows, else at the lowest point of the cloud (its stray points set
+    /// aside: see `Registration::stray_points`) or of the registered shape, when the cloud's frame is z up (`up_in_cloud` = (0,
     /// 0, 1)); no table otherwise. The registration is not told of it.
     pub const AUTO: u32 = 0;
     pub const NONE: u32 = 1;

@@ -123,6 +123,8 @@ pub fn run(a: RegisterArgs) -> CliResult {
         "stage_ms": reg.stage_ms,
         // The camera position assumed when --viewpoint was not given (null: none used).
         "estimated_viewpoint": reg.estimated_viewpoint,
+        // The table a leaking segmentation showed, when none was given (null: none found).
+        "found_table_height": reg.found_table_height,
         "yaw_arc": yaw_arc_json(&reg),
     });
     if a.json {

@@ -254,12 +254,12 @@ impl TransferredTool {
     }
 
     /// The table under a tool registered in a z-up cloud when none is
-    /// given: the lower of the cloud's lowest kept point and the registered
-    /// shape's. The kept points, not all: one flying pixel 30 cm under a mug
-    /// put the table there and the grasp's fingers free to pass through
-    /// the real one.
+    /// given: the one a leaking segmentation showed, else the lower of the
+    /// cloud's lowest kept point and the registered shape's. The kept
+    /// points, not all: one flying pixel 30 cm under a mug put the table
+    /// there and the grasp's fingers free to pass through the real one.
     pub fn table_z_under(&self, reg: &Registration) -> f64 {
-        reg.lowest_kept_z.min(self.lowest_z())
+        reg.found_table_height.unwrap_or_else(|| reg.lowest_kept_z.min(self.lowest_z()))
     }
 }
 
