@@ -470,9 +470,9 @@ impl Default for TableBand {
 }
 
 impl TableBand {
-    /// The indices of the points of `x` that are not the table's, the
-    /// table being the plane height = `table` (`heights`: each point's
-    /// height along up, `up` a unit vector); None when none is set aside.
+    /// Which points of `x` are the table's (true), the table being the
+    /// plane height = `table` (`heights`: each point's height along up,
+    /// `up` a unit vector); None when the view does not leak and none is.
     pub fn table_points(&self, x: &[P3], heights: &[f64], up: [f64; 3], table: f64) -> Option<Vec<bool>> {
         let Some((band, beside)) = self.beside_the_tool(x, heights, up, table) else {
             // Nothing near the table, or a band no tool's foot spans: all above it or all of it the table's.
