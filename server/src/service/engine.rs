@@ -487,6 +487,11 @@ mod tests {
         view.points_world.iter().map(|p| proto::Point([p.x as f32, p.y as f32, p.z as f32])).collect()
     }
 
+    /// The built-in shape spaces' cache (assets/spaces).
+    fn bundled_spaces() -> std::path::PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/spaces")
+    }
+
     fn grasp_header() -> proto::RequestHeader {
         let mut h = proto::RequestHeader::zeroed();
         h.protocol_version = proto::PROTOCOL_VERSION;
@@ -500,7 +505,7 @@ mod tests {
     /// the whole cloud was the table.
     #[test]
     fn a_stray_point_under_the_tool_is_not_the_table() {
-        let cache = Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/spaces");
+        let cache = bundled_spaces();
         let (engine, _) = Engine::load(&["mug".to_string()], &cache, &GraspSources::default()).unwrap();
         let (cloud, h) = (mug_view(), grasp_header());
         let plain = engine.grasp(0, &cloud, &h).unwrap();
@@ -528,7 +533,7 @@ mod tests {
     /// grasp, named as the configured hand names its joints.
     #[test]
     fn a_configured_hand_and_demonstration_serve_grasp() {
-        let cache = Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/spaces");
+        let cache = bundled_spaces();
         let dir = tempfile::tempdir().unwrap();
         let names = vec!["mug".to_string()];
         let (bundled, _) = Engine::load(&names, &cache, &GraspSources::default()).unwrap();
@@ -552,7 +557,7 @@ mod tests {
     /// or hand that does not fit or load stops the start.
     #[test]
     fn a_hand_without_its_demonstration_is_refused_clearly() {
-        let cache = Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/spaces");
+        let cache = bundled_spaces();
         let dir = tempfile::tempdir().unwrap();
         let names = vec!["mug".to_string()];
         let (engine, _) = Engine::load(&names, &cache, &renamed_hand(dir.path(), false)).unwrap();
