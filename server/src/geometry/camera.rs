@@ -40,7 +40,7 @@ pub struct DepthNoise {
     pub quadratic_per_m: f64,
     pub dropout: f64,
     /// The tool's mask dilated by this many pixels: the table's pixels
-    /// that near the tool's silhouette are kept as the tool's (what a
+    /// that lie near the tool's silhouette are kept as the tool's (what a
     /// learned segmentation's blurred edge gives where the tool meets the
     /// table and around it). 0: exact segmentation.
     #[serde(default)]
