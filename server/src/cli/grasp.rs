@@ -49,9 +49,10 @@ pub struct GraspArgs {
     #[command(flatten)]
     view: ViewArgs,
     /// Table top height in the cloud's frame (z up); the registration then also
-    /// holds the tool's lowest point on it. Default: the lowest point of the
-    /// cloud (stray points set aside) or of the registered shape, whichever
-    /// is lower (grasp only).
+    /// holds the tool's lowest point on it. Default: the table a segmentation
+    /// leaking onto it shows, else the lowest point of the cloud (stray
+    /// points set aside) or of the registered shape, whichever is lower
+    /// (grasp only).
     #[arg(long, allow_hyphen_values = true)]
     table_z: Option<f64>,
     /// No table plane.

@@ -441,8 +441,10 @@ pub struct Registration {
     /// direction, or `yaw_sweep_steps` below 4).
     pub yaw_arc: Option<YawArc>,
     /// The lowest z of the cloud's points the fit kept (stray, far and
-    /// table points set aside), cloud frame, metres: for a z-up cloud, no higher than the
-    /// table the tool stands on (`graspd grasp`'s table when none is given).
+    /// table points set aside), cloud frame, metres: for a z-up cloud, no
+    /// higher than the table the tool stands on (with the registered
+    /// shape's, `graspd grasp`'s table when none is given and no leak
+    /// showed one).
     pub lowest_kept_z: f64,
     /// The table a leaking segmentation showed (height along up, cloud
     /// frame, metres), when none was given: the fit held the tool on it.
