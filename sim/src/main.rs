@@ -169,6 +169,10 @@ struct GraspArgs {
     /// mask dilated by this many pixels (`--grasp-from register|daemon`).
     #[arg(long, default_value_t = 0)]
     camera_mask_leak_px: u32,
+    /// Something in front of the tool hides this share of its image width
+    /// in the scene camera (`--grasp-from register|daemon`).
+    #[arg(long, default_value_t = 0.0)]
+    camera_occluder_share: f64,
     /// URDF of another hand than the bundled SIH-like one (with
     /// --hand-keypoints; its servos take the bundled hand's gains).
     #[arg(long, requires = "hand_keypoints")]
@@ -373,10 +377,14 @@ fn make_planner(
     if !(a.camera_noise_scale.is_finite() && a.camera_noise_scale >= 0.0) {
         return Err(format!("--camera-noise-scale {}: 0 or more", a.camera_noise_scale).into());
     }
+    if !(0.0..1.0).contains(&a.camera_occluder_share) {
+        return Err(format!("--camera-occluder-share {}: from 0 up to 1", a.camera_occluder_share).into());
+    }
     let mut camera = graspd_sim::camera::SceneCamera::default();
     camera.noise.sigma_m *= a.camera_noise_scale;
     camera.noise.quadratic_per_m *= a.camera_noise_scale;
     camera.noise.mask_leak_px = a.camera_mask_leak_px;
+    camera.noise.occluder_share = a.camera_occluder_share;
     Ok(match from {
         GraspFrom::InProcess => planner,
         GraspFrom::Register => planner.with_engine_camera(camera, graspd_sim::camera::LabFrame::default())?,

@@ -24,6 +24,9 @@ pub struct CloudArgs {
     /// this many pixels.
     #[arg(long, default_value_t = 0)]
     mask_leak_px: u32,
+    /// Something in front of the tool hides this share of its image width.
+    #[arg(long, default_value_t = 0.0)]
+    occluder_share: f64,
     /// Output cloud (.ply, .pcd, .xyz, .npy), world frame.
     #[arg(long)]
     out: PathBuf,
@@ -46,8 +49,15 @@ pub fn run(a: CloudArgs) -> CliResult {
     let scene = Scene::new(&mesh, Isometry3::identity(), table_z)?;
     let intrinsics = Intrinsics::default();
     let pose = standard_view(a.view, a.views, centre, mesh.diagonal(), intrinsics)?;
-    let noise =
-        DepthNoise { sigma_m: a.noise_mm.max(0.0) * 1e-3, mask_leak_px: a.mask_leak_px, ..DepthNoise::default() };
+    if !(0.0..1.0).contains(&a.occluder_share) {
+        return Err(format!("--occluder-share {}: from 0 up to 1", a.occluder_share).into());
+    }
+    let noise = DepthNoise {
+        sigma_m: a.noise_mm.max(0.0) * 1e-3,
+        mask_leak_px: a.mask_leak_px,
+        occluder_share: a.occluder_share,
+        ..DepthNoise::default()
+    };
     let cam = DepthCamera { intrinsics, world_from_camera: pose, noise };
     let view = cam.capture(&scene, a.seed)?;
     graspd::io::write_cloud(&a.out, &view.points_world)?;

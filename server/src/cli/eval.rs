@@ -25,6 +25,10 @@ pub enum EvalCommand {
         /// this many pixels.
         #[arg(long, default_value_t = 0)]
         mask_leak_px: u32,
+        /// Something in front of each tool (a pole, the robot's arm) hides
+        /// this share of its image width; the cloud does not say where.
+        #[arg(long, default_value_t = 0.0)]
+        occluder_share: f64,
         /// Random uniform scale of each placed tool, ± this fraction.
         #[arg(long, default_value_t = 0.0)]
         scale_jitter: f64,
@@ -126,6 +130,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             noise_mm,
             outliers,
             mask_leak_px,
+            occluder_share,
             scale_jitter,
             on_side,
             full_surface,
@@ -137,6 +142,9 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             space,
             json,
         } => {
+            if !(0.0..1.0).contains(&occluder_share) {
+                return Err(format!("--occluder-share {occluder_share}: from 0 up to 1").into());
+            }
             let register = match register_options {
                 Some(j) => super::overlay_json(graspd::shape::RegisterOptions::default(), &j, "--register-options")?,
                 None => graspd::shape::RegisterOptions::default(),
@@ -153,7 +161,12 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             let family = tools::family(category)?;
             let opts = TransferEvalOptions {
                 views,
-                noise: DepthNoise { sigma_m: noise_mm.max(0.0) * 1e-3, mask_leak_px, ..DepthNoise::default() },
+                noise: DepthNoise {
+                    sigma_m: noise_mm.max(0.0) * 1e-3,
+                    mask_leak_px,
+                    occluder_share,
+                    ..DepthNoise::default()
+                },
                 outliers,
                 scale_jitter,
                 on_side,
@@ -178,7 +191,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             let out = serde_json::json!({
                 "category": category.name(),
                 "views": views,
-                "noise_mm": noise_mm, "outliers": outliers, "mask_leak_px": mask_leak_px, "scale_jitter": scale_jitter, "on_side": on_side, "full_surface": full_surface, "known_viewpoint": !unknown_viewpoint, "known_table": !unknown_table,
+                "noise_mm": noise_mm, "outliers": outliers, "mask_leak_px": mask_leak_px, "occluder_share": occluder_share, "scale_jitter": scale_jitter, "on_side": on_side, "full_surface": full_surface, "known_viewpoint": !unknown_viewpoint, "known_table": !unknown_table,
                 "test": splits.iter().position(|s| *s == Split::Test).map(|i| &reports[i]),
                 "train": splits.iter().position(|s| *s == Split::Train).map(|i| &reports[i]),
             });
@@ -202,6 +215,13 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                     println!(
                         "  keypoint depth bias (along the view; negative: toward the camera): median {:+.2} mm",
                         r.keypoint_depth_bias_mm.median
+                    );
+                    println!(
+                        "  confident {:.0}%, ambiguous {:.0}%, misled {:.1}% (confident, not ambiguous, a keypoint over {} mm off)",
+                        r.confident_fraction * 100.0,
+                        r.ambiguous_fraction * 100.0,
+                        r.misled_fraction * 100.0,
+                        graspd::eval::transfer::MISLED_MM
                     );
                     if r.skipped_views > 0 {
                         println!("  {} views not scored (fewer than 50 points of the tool seen)", r.skipped_views);

@@ -140,6 +140,14 @@ pub fn run(a: RegisterArgs) -> CliResult {
             if reg.fit.ambiguous_pose { ", AMBIGUOUS POSE" } else { "" },
             reg.elapsed_ms
         );
+        if let Some(c) = reg.fit.contradicted_fraction {
+            // Clean views of a right fit: a few percent (see `FitQuality::contradicted_fraction`).
+            println!(
+                "  the view contradicts {:.1}% of the fitted shape's camera-facing surface{}",
+                c * 100.0,
+                if c > 0.08 { ": something in front of the tool hid part of it, or the fit is wrong" } else { "" }
+            );
+        }
         let spread = reg.keypoint_spread_m().unwrap_or_default();
         if let Some(arc) = reg.yaw_arc.filter(|a| a.half_width_rad > 0.0) {
             println!(

@@ -109,6 +109,10 @@ pub struct SplitReport {
     /// Share of views flagged `ambiguous_pose`, and the keypoint error over the others.
     pub ambiguous_fraction: f64,
     pub unambiguous_keypoint_error_mm: Percentiles,
+    /// Share of views answered with assurance (confident, pose not
+    /// ambiguous) yet with a keypoint more than `MISLED_MM` off: the answers
+    /// a user has no reason to doubt and should.
+    pub misled_fraction: f64,
     /// Per view, the mean keypoint error vector (ours) along the camera's
     /// viewing axis; negative: the registered keypoints sit nearer the camera
     /// than the truth. A partial view is seen from one side only, so a fit that
@@ -164,6 +168,10 @@ pub struct FitTimes {
     pub p99: f64,
     pub max: f64,
 }
+
+/// A keypoint this far off (mm) makes a grasp miss: a mug's handle turned
+/// by 30° about its body moves about 25 mm.
+pub const MISLED_MM: f64 = 20.0;
 
 struct Trial {
     points: usize,
@@ -250,6 +258,11 @@ pub fn evaluate(
         unambiguous_keypoint_error_mm: percentiles(
             trials.iter().filter(|t| !t.ambiguous).flat_map(|t| t.kp[0].iter().copied()).collect(),
         ),
+        misled_fraction: trials
+            .iter()
+            .filter(|t| t.confident && !t.ambiguous && t.kp[0].iter().any(|e| *e > MISLED_MM))
+            .count() as f64
+            / trials.len().max(1) as f64,
         keypoint_depth_bias_mm: percentiles(trials.iter().map(|t| t.depth_bias_mm).collect()),
         estimated_viewpoint: viewpoint_errors(&trials),
         yaw_arc: yaw_arc_calibration(&trials, std::f64::consts::TAU / opts.register.yaw_sweep_steps.max(1) as f64),
@@ -454,8 +467,8 @@ fn trial(
         if trace {
             let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
             eprintln!(
-                "{} view {view}: {} pts, ambiguous {}, rot err {:.1}°, scale {:.3} (true {scale:.3}), inliers {:.2}, coverage {:.3}, mahalanobis {:.2}, kp mean ours {:.1} canonical {:.1} cpd {:.1} mm, {:.1} ms",
-                inst.name, t.points, t.ambiguous, t.rotation_error_deg, reg.scale, reg.fit.inlier_fraction, reg.fit.coverage, reg.fit.latent_mahalanobis, mean(&t.kp[0]), mean(&t.kp[1]), mean(&t.kp[2]), t.fit_ms
+                "{} view {view}: {} pts, confident {}, ambiguous {}, contradicted {:.3}, rot err {:.1}°, scale {:.3} (true {scale:.3}), inliers {:.2}, coverage {:.3}, mahalanobis {:.2}, kp mean ours {:.1} canonical {:.1} cpd {:.1} mm, {:.1} ms",
+                inst.name, t.points, t.confident, t.ambiguous, reg.fit.contradicted_fraction.unwrap_or(f64::NAN), t.rotation_error_deg, reg.scale, reg.fit.inlier_fraction, reg.fit.coverage, reg.fit.latent_mahalanobis, mean(&t.kp[0]), mean(&t.kp[1]), mean(&t.kp[2]), t.fit_ms
             );
             let near: Vec<usize> = truth_kp
                 .iter()

@@ -45,15 +45,22 @@ pub struct DepthNoise {
     /// table and around it). 0: exact segmentation.
     #[serde(default)]
     pub mask_leak_px: u32,
+    /// A vertical bar in front of the tool (a pole, the robot's own arm)
+    /// hides this share of the tool's image width: the segmented cloud lacks
+    /// the pixels behind it, and nothing in the cloud says they were hidden.
+    /// Placed over the tool's columns by the capture's seed. 0: nothing in front.
+    #[serde(default)]
+    pub occluder_share: f64,
 }
 
 impl DepthNoise {
-    pub const NONE: Self = Self { sigma_m: 0.0, quadratic_per_m: 0.0, dropout: 0.0, mask_leak_px: 0 };
+    pub const NONE: Self =
+        Self { sigma_m: 0.0, quadratic_per_m: 0.0, dropout: 0.0, mask_leak_px: 0, occluder_share: 0.0 };
 }
 
 impl Default for DepthNoise {
     fn default() -> Self {
-        Self { sigma_m: 0.001, quadratic_per_m: 0.0012, dropout: 0.0, mask_leak_px: 0 }
+        Self { sigma_m: 0.001, quadratic_per_m: 0.0012, dropout: 0.0, mask_leak_px: 0, occluder_share: 0.0 }
     }
 }
 
@@ -158,6 +165,8 @@ impl DepthCamera {
                 emit(&mut view, &mut rng, d_cam, depth, [u, v]);
             }
         }
+        // The occluder's columns, from the tool's own pixels (before any leak).
+        let occluded = self.occluder_columns(&view, seed);
         let leak = self.noise.mask_leak_px;
         if leak > 0 && scene.table_z.is_some() && !view.pixels.is_empty() {
             // The mask dilated by `leak` pixels (a square): the table's pixels in it.
@@ -190,7 +199,24 @@ impl DepthCamera {
                 }
             }
         }
+        if let Some(cols) = occluded {
+            view.hide_columns(cols);
+        }
         Ok(view)
+    }
+
+    /// The image columns [first, end) the occluder hides (`DepthNoise::occluder_share`).
+    fn occluder_columns(&self, view: &PartialView, seed: u64) -> Option<(u32, u32)> {
+        let share = self.noise.occluder_share;
+        if !(share > 0.0) || view.pixels.is_empty() {
+            return None;
+        }
+        let (lo, hi) = view.pixels.iter().fold((u32::MAX, 0), |(lo, hi), [u, _]| (lo.min(*u), hi.max(*u + 1)));
+        let width = ((share.min(1.0) * (hi - lo) as f64).round() as u32).max(1);
+        // Its own stream: the depth noise of the pixels it leaves stays as without it.
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x6f63_636c_7564_6572);
+        let first = lo + rand::Rng::random_range(&mut rng, 0..=(hi - lo).saturating_sub(width));
+        Some((first, first + width))
     }
 
     /// Pixel rectangle covering the projected bounding box of the tool (rays
@@ -226,6 +252,19 @@ impl DepthCamera {
             clamp(vmin.floor(), k.height),
             clamp(vmax.ceil() + 1.0, k.height),
         )
+    }
+}
+
+impl PartialView {
+    /// Drops the points whose pixel lies in columns [first, end).
+    fn hide_columns(&mut self, (first, end): (u32, u32)) {
+        let keep: Vec<bool> = self.pixels.iter().map(|[u, _]| !(first..end).contains(u)).collect();
+        let mut k = keep.iter();
+        self.points_world.retain(|_| *k.next().unwrap_or(&true));
+        let mut k = keep.iter();
+        self.points_camera.retain(|_| *k.next().unwrap_or(&true));
+        let mut k = keep.iter();
+        self.pixels.retain(|_| *k.next().unwrap_or(&true));
     }
 }
 
@@ -305,7 +344,8 @@ mod tests {
         let m = box_mesh(Point3::new(-0.05, -0.05, 0.0), Point3::new(0.05, 0.05, 0.1));
         let scene = Scene::new(&m, Isometry3::identity(), None).unwrap();
         let pose = look_at(Point3::new(0.5, 0.0, 0.05), Point3::new(0.0, 0.0, 0.05), Vector3::z()).unwrap();
-        let noise = DepthNoise { sigma_m: 0.002, quadratic_per_m: 0.0, dropout: 0.0, mask_leak_px: 0 };
+        let noise =
+            DepthNoise { sigma_m: 0.002, quadratic_per_m: 0.0, dropout: 0.0, mask_leak_px: 0, occluder_share: 0.0 };
         let cam = DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: pose, noise };
         let a = cam.capture(&scene, 3).unwrap();
         let b = cam.capture(&scene, 3).unwrap();
@@ -342,6 +382,46 @@ mod tests {
         // In front of the box (toward the camera, +x) the band is 3 pixels: a few millimetres.
         let front = table.iter().filter(|p| p.x > 0.05).map(|p| p.x - 0.05).fold(0.0, f64::max);
         assert!(front > 0.001 && front < 0.008, "front band {front}");
+    }
+
+    /// An occluder takes one band of columns, `occluder_share` of the
+    /// tool's image width, out of the view; every other point is as
+    /// without it, depth noise included.
+    #[test]
+    fn an_occluder_hides_a_band_of_the_tools_columns() {
+        let m = box_mesh(Point3::new(-0.05, -0.05, 0.0), Point3::new(0.05, 0.05, 0.1));
+        let scene = Scene::new(&m, Isometry3::identity(), Some(0.0)).unwrap();
+        let pose = look_at(Point3::new(0.4, 0.1, 0.35), Point3::new(0.0, 0.0, 0.05), Vector3::z()).unwrap();
+        let cam = |share| DepthCamera {
+            intrinsics: Intrinsics::default(),
+            world_from_camera: pose,
+            noise: DepthNoise { occluder_share: share, ..DepthNoise::default() },
+        };
+        let clean = cam(0.0).capture(&scene, 5).unwrap();
+        let (lo, hi) = clean.pixels.iter().fold((u32::MAX, 0), |(lo, hi), [u, _]| (lo.min(*u), hi.max(*u + 1)));
+        let mut bands = Vec::new();
+        for seed in [5, 6, 7] {
+            let clean = cam(0.0).capture(&scene, seed).unwrap();
+            let hidden = cam(0.3).capture(&scene, seed).unwrap();
+            let kept: Vec<_> = clean
+                .pixels
+                .iter()
+                .zip(&clean.points_world)
+                .filter(|(px, _)| hidden.pixels.contains(px))
+                .map(|(_, p)| *p)
+                .collect();
+            assert_eq!(kept, hidden.points_world, "seed {seed}: the kept points changed");
+            let gone: Vec<u32> =
+                clean.pixels.iter().filter(|px| !hidden.pixels.contains(px)).map(|[u, _]| *u).collect();
+            let (a, b) = (*gone.iter().min().unwrap(), *gone.iter().max().unwrap() + 1);
+            // Every pixel of the band's columns is gone, and none outside it.
+            assert_eq!(gone.len(), clean.pixels.iter().filter(|[u, _]| (a..b).contains(u)).count());
+            let width = (b - a) as f64 / (hi - lo) as f64;
+            assert!((width - 0.3).abs() < 0.02, "seed {seed}: band {a}..{b} of {lo}..{hi}");
+            bands.push(a);
+        }
+        bands.dedup();
+        assert!(bands.len() > 1, "the seed does not place the band: {bands:?}");
     }
 
     #[test]
