@@ -104,6 +104,7 @@ impl Support {
     }
 }
 
+#[derive(Clone)]
 pub(super) struct Fit {
     pub(super) pose: Pose,
     pub(super) latent: Vec<f64>,
