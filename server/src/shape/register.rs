@@ -812,8 +812,7 @@ impl Registrar {
         let free_space =
             viewpoint.and_then(|vp| FreeSpace::new(&subsample(&all, 4000, &mut rng), vp, FREE_SPACE_MARGIN_M));
         let mut best: Option<(f64, Fit)> = None;
-        let mut raced: Vec<(f64, Matrix3<f64>)> = Vec::new();
-        let mut raced_fits: Vec<(f64, Fit)> = Vec::new();
+        let mut raced: Vec<(f64, Fit)> = Vec::new();
         let mut iterations = 0;
         // The survivors race a few iterations at full resolution (the coarse
         // level cannot see a mug's handle well enough to settle its yaw); the
@@ -882,22 +881,19 @@ impl Registrar {
                     eprintln!("   race: rpy {roll:.0} {pitch:.0} {yaw:.0}°, alone (not scored)");
                 }
             }
-            raced.push((score, fit.pose.r));
-            raced_fits.push((score, fit.clone()));
+            raced.push((score, fit.clone()));
             if best.as_ref().is_none_or(|b| score < b.0) {
                 best = Some((score, fit));
             }
         }
         let (lead_score, mut lead) = best.expect("at least one hypothesis");
-        // The best raced fit in another basin than the lead's (at least 30° away).
-        let runner_up = raced_fits
+        // The best raced fit in another basin than the lead's (at least 30°
+        // away); within the margin of the lead's score, the pose is ambiguous.
+        let runner_up = raced
             .into_iter()
             .filter(|(_, f)| rotation_between(&lead.pose.r, &f.pose.r) > 30f64.to_radians())
             .min_by(|a, b| a.0.total_cmp(&b.0));
-        let mut race_ambiguous = raced.iter().any(|(sc, r)| {
-            let angle = rotation_between(&lead.pose.r, r);
-            angle > 30f64.to_radians() && *sc - lead_score < AMBIGUITY_MARGIN
-        });
+        let mut race_ambiguous = runner_up.as_ref().is_some_and(|(sc, _)| sc - lead_score < AMBIGUITY_MARGIN);
         // A tool that may lie on its side may lie either end first: race the
         // lead turned end over end too (see `RegisterOptions::flip_check`).
         if flip_check {
