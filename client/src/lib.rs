@@ -183,7 +183,8 @@ pub struct Fit {
     /// The turns about the tool's upright axis that explain the view about as
     /// well as the reported pose reach this far either way of it, radians; 0
     /// when the view settles the turn; None when not assessed (no up
-    /// direction). See [`Registration::yaw_arc`].
+    /// direction, or the pose is the race's runner-up: proto/README.md).
+    /// See [`Registration::yaw_arc`].
     pub yaw_half_width_rad: Option<f64>,
 }
 

@@ -442,7 +442,9 @@ pub struct Registration {
     /// The turns about the tool's upright axis that explain the view about
     /// as well as the reported pose reach this far either way of it,
     /// radians (a mug whose handle is hidden: ±30-60°); 0 when the view
-    /// settles the turn; −1 when it was not assessed (no up direction).
+    /// settles the turn; −1 when it was not assessed (no up direction, or
+    /// a tool off its rest pose whose pose is the race's runner-up, fitted
+    /// after the sweep: see README.md).
     /// The axis: the canonical axis nearest the request's up direction,
     /// through `translation_cloud_from_canonical_m` (see README.md).
     pub yaw_half_width_rad: f32,

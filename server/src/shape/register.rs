@@ -476,7 +476,8 @@ pub struct Registration {
     pub estimated_viewpoint: Option<[f64; 3]>,
     /// The turns about the tool's upright axis that explain the view about
     /// as well as the reported pose; None when no yaw sweep ran (no up
-    /// direction, or `yaw_sweep_steps` below 4).
+    /// direction, or `yaw_sweep_steps` below 4) or when the reported pose is
+    /// the race's runner-up, not the swept one (`recheck_runner_up`).
     pub yaw_arc: Option<YawArc>,
     /// The lowest z of the cloud's points the fit kept (stray, far and
     /// table points set aside), cloud frame, metres: for a z-up cloud, no
