@@ -258,13 +258,13 @@ impl DepthCamera {
 impl PartialView {
     /// Drops the points whose pixel lies in columns [first, end).
     fn hide_columns(&mut self, (first, end): (u32, u32)) {
-        let keep: Vec<bool> = self.pixels.iter().map(|[u, _]| !(first..end).contains(u)).collect();
-        let mut k = keep.iter();
-        self.points_world.retain(|_| *k.next().unwrap_or(&true));
-        let mut k = keep.iter();
-        self.points_camera.retain(|_| *k.next().unwrap_or(&true));
-        let mut k = keep.iter();
-        self.pixels.retain(|_| *k.next().unwrap_or(&true));
+        let all = std::mem::take(self);
+        let points = all.points_world.into_iter().zip(all.points_camera).zip(all.pixels);
+        for ((world, camera), px) in points.filter(|(_, [u, _])| !(first..end).contains(u)) {
+            self.points_world.push(world);
+            self.points_camera.push(camera);
+            self.pixels.push(px);
+        }
     }
 }
 

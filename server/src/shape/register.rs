@@ -862,9 +862,8 @@ impl Registrar {
             if !scoring {
                 return (fit, f64::NAN, f64::NAN, 0.0);
             }
-            let (nll_pt, violation) = dense_score(scorer, &models.polish, &fit, viewpoint, free_space.as_ref(), opts);
-            let tilt = up.map_or(0.0, |up| (1.0 - (fit.pose.r * Vector3::z()).dot(&up)) / 2.0);
-            let score = nll_pt + FREE_SPACE_PENALTY * violation + opts.upright_prior * tilt;
+            let (nll_pt, violation, score) =
+                pose_score(scorer, &models.polish, &fit, viewpoint, free_space.as_ref(), up, opts);
             (fit, nll_pt, violation, score)
         };
         for (_, pose, sigma2) in survivors {
@@ -1003,7 +1002,7 @@ impl Registrar {
             // --views 12 --seed 7, test keypoint median / p90: mug 1.79 / 10.3 →
             // 1.95 / 27.6 mm, drill 2.11 / 4.9 → 2.19 / 4.9). And only for a tool
             // resting as its category was modelled (see `REST_POSE_COS`).
-            let support = Support::new(up, opts).filter(|sp| (start.pose.r * Vector3::z()).dot(&sp.up) > REST_POSE_COS);
+            let support = Support::new(up, opts).filter(|sp| rests_as_modelled(&start.pose.r, &sp.up));
             let fit_latent = |level: &LatentLevel, x: &ViewPoints, start: &Fit, sigma2: f64, iters: usize| {
                 em(
                     &level.model,
@@ -1063,19 +1062,16 @@ impl Registrar {
         // Only off the category's rest pose: at rest, the yaw sweep has
         // settled the turn the view leaves open, and a runner-up fitted
         // without it took an edge of that arc instead of its middle.
-        let at_rest = up.is_some_and(|up| (lead.pose.r * Vector3::z()).dot(&up) > REST_POSE_COS);
+        let at_rest = up.is_some_and(|up| rests_as_modelled(&lead.pose.r, &up));
         if let Some((runner_score, runner)) =
             runner_up.filter(|(sc, _)| !at_rest && opts.recheck_runner_up.is_some_and(|m| sc - lead_score < m))
         {
             let t_stage = Instant::now();
             let (other, n, _, _) = complete(&runner);
             iterations += n;
-            let mut final_score = |f: &Fit| {
-                let (nll_pt, violation) =
-                    dense_score(&mut scorer, &models.polish, f, viewpoint, free_space.as_ref(), opts);
-                let tilt = up.map_or(0.0, |up| (1.0 - (f.pose.r * Vector3::z()).dot(&up)) / 2.0);
-                nll_pt + FREE_SPACE_PENALTY * violation + opts.upright_prior * tilt
-            };
+            // Scored as the race scores.
+            let mut final_score =
+                |f: &Fit| pose_score(&mut scorer, &models.polish, f, viewpoint, free_space.as_ref(), up, opts).2;
             let (mine, theirs) = (final_score(&fit), final_score(&other));
             if trace_enabled() {
                 eprintln!(
@@ -1301,6 +1297,31 @@ const AMBIGUITY_MARGIN: f64 = 0.2;
 const FREE_SPACE_MARGIN_M: f64 = 0.006;
 /// Score penalty (nats per observed point) for contradicting the whole visible model.
 const FREE_SPACE_PENALTY: f64 = 4.0;
+
+/// A raced pose's score, lower is better: `dense_score`'s likelihood per
+/// observed point, penalised by the share of the model the view contradicts
+/// and by the tilt of the canonical z from `up` (`RegisterOptions::upright_prior`).
+/// (nll a point, violation, score)
+#[allow(clippy::too_many_arguments)]
+fn pose_score(
+    estep: &mut EStep,
+    level: &LatentLevel,
+    fit: &Fit,
+    viewpoint: Option<Vector3<f64>>,
+    free_space: Option<&FreeSpace>,
+    up: Option<Vector3<f64>>,
+    opts: &RegisterOptions,
+) -> (f64, f64, f64) {
+    let (nll_pt, violation) = dense_score(estep, level, fit, viewpoint, free_space, opts);
+    let tilt = up.map_or(0.0, |up| (1.0 - (fit.pose.r * Vector3::z()).dot(&up)) / 2.0);
+    (nll_pt, violation, nll_pt + FREE_SPACE_PENALTY * violation + opts.upright_prior * tilt)
+}
+
+/// Whether a pose (rotation of the canonical frame) rests as its category
+/// was modelled: the canonical z within `REST_POSE_COS` of `up`.
+fn rests_as_modelled(r: &Matrix3<f64>, up: &Vector3<f64>) -> bool {
+    (r * Vector3::z()).dot(up) > REST_POSE_COS
+}
 
 /// A fit's negative log-likelihood per observed point and the share of its
 /// camera-facing model the view contradicts, both with `level`'s points at
