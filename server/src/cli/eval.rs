@@ -223,6 +223,28 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                         r.misled_fraction * 100.0,
                         graspd::eval::transfer::MISLED_MM
                     );
+                    if let Some(v) = &r.view_ambiguity {
+                        println!(
+                            "  the views themselves: {:.0}% leave the tool's turn open{}; the floor under any method (the true shape, the middle of each view's unseen turns) median {:.1} mm p90 {:.1} mm",
+                            v.open_fraction * 100.0,
+                            if v.open_fraction > 0.0 {
+                                format!(" (half width median {:.0}°)", v.half_width_deg.median)
+                            } else {
+                                String::new()
+                            },
+                            v.keypoint_error_floor_mm.median,
+                            v.keypoint_error_floor_mm.p90,
+                        );
+                        if v.open_fraction > 0.0 {
+                            println!(
+                                "    on the open views: ours median {:.1} p90 {:.1} mm, the floor {:.1} / {:.1}",
+                                v.open_keypoint_error_mm.median,
+                                v.open_keypoint_error_mm.p90,
+                                v.open_keypoint_error_floor_mm.median,
+                                v.open_keypoint_error_floor_mm.p90
+                            );
+                        }
+                    }
                     if r.skipped_views > 0 {
                         println!("  {} views not scored (fewer than 50 points of the tool seen)", r.skipped_views);
                     }

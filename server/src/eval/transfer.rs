@@ -17,6 +17,7 @@
 //! that trades the latent's size modes for its uniform scale can keep the
 //! semantic keypoints and still move the fingers' targets.
 
+use super::ambiguity;
 use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
 use crate::geometry::{sample_points, PointTree};
 use crate::shape::cpd::{self, EmOptions, NonRigidOptions};
@@ -127,6 +128,34 @@ pub struct SplitReport {
     /// wider than zero), and whether the truth lies within what it reports.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub yaw_arc: Option<YawArcCalibration>,
+    /// What the views themselves leave open, and the floor that puts under
+    /// any method's keypoint error (upright tools; see `eval::ambiguity`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub view_ambiguity: Option<ViewAmbiguity>,
+}
+
+/// What the views themselves leave open (`eval::ambiguity`): the true
+/// tool's turns about its upright axis that each view cannot see, and the
+/// keypoint error that leaves to any method.
+#[derive(Clone, Debug, Serialize)]
+pub struct ViewAmbiguity {
+    /// Views assessed (upright tools).
+    pub views: usize,
+    /// Share of them whose true tool turns at least 5° unseen.
+    pub open_fraction: f64,
+    /// Half the unseen turns' span, over the open views.
+    pub half_width_deg: Percentiles,
+    /// The floor: an estimator that knows the true shape and answers the
+    /// middle of each view's unseen turns, the truth uniform over them
+    /// (expected over each arc). No method's pooled quantiles on these views
+    /// can be lower in expectation.
+    pub keypoint_error_floor_mm: Percentiles,
+    /// The same estimator on the truth's actual turn in each view (one draw of the floor).
+    pub keypoint_error_at_middle_mm: Percentiles,
+    /// On the open views alone: ours, the floor, and the floor's draw.
+    pub open_keypoint_error_mm: Percentiles,
+    pub open_keypoint_error_floor_mm: Percentiles,
+    pub open_keypoint_error_at_middle_mm: Percentiles,
 }
 
 /// How well the reported yaw arcs bound the errors they stand for.
@@ -188,6 +217,9 @@ struct Trial {
     camera: CameraEstimate,
     /// The yaw arc's half width (radians) and each keypoint's spread across it (mm).
     arc: Option<(f64, Vec<f64>)>,
+    /// The true tool's turns the view cannot see (radians, about the truth)
+    /// and each true keypoint's distance from the turning axis (m); upright views only.
+    unseen: Option<((f64, f64), Vec<f64>)>,
 }
 
 /// What the registration knew of the camera in one trial.
@@ -266,8 +298,52 @@ pub fn evaluate(
         keypoint_depth_bias_mm: percentiles(trials.iter().map(|t| t.depth_bias_mm).collect()),
         estimated_viewpoint: viewpoint_errors(&trials),
         yaw_arc: yaw_arc_calibration(&trials, std::f64::consts::TAU / opts.register.yaw_sweep_steps.max(1) as f64),
+        view_ambiguity: view_ambiguity(&trials),
     }
 }
+
+/// What the views leave open against what ours made of them (None: no
+/// trial was assessed, e.g. tools on their side).
+fn view_ambiguity(trials: &[Trial]) -> Option<ViewAmbiguity> {
+    let assessed: Vec<(&Trial, (f64, f64), &[f64])> =
+        trials.iter().filter_map(|t| t.unseen.as_ref().map(|(arc, r)| (t, *arc, r.as_slice()))).collect();
+    if assessed.is_empty() {
+        return None;
+    }
+    let open: Vec<_> = assessed.iter().filter(|(_, (lo, hi), _)| hi - lo >= OPEN_TURN.to_radians()).collect();
+    let floor = |views: &[&(&Trial, (f64, f64), &[f64])]| {
+        percentiles(views.iter().flat_map(|(_, arc, r)| ambiguity::floor_errors_mm(r, *arc, FLOOR_SAMPLES)).collect())
+    };
+    // The truth lies at turn 0 of its arc: the middle is that far from it.
+    let at_middle = |views: &[&(&Trial, (f64, f64), &[f64])]| {
+        percentiles(
+            views
+                .iter()
+                .flat_map(|(_, (lo, hi), r)| {
+                    let middle = (lo + hi) / 2.0;
+                    r.iter().map(move |&r| 1e3 * ambiguity::chord(r, middle))
+                })
+                .collect(),
+        )
+    };
+    let all: Vec<_> = assessed.iter().collect();
+    Some(ViewAmbiguity {
+        views: assessed.len(),
+        open_fraction: open.len() as f64 / assessed.len() as f64,
+        half_width_deg: percentiles(open.iter().map(|(_, (lo, hi), _)| (hi - lo).to_degrees() / 2.0).collect()),
+        keypoint_error_floor_mm: floor(&all),
+        keypoint_error_at_middle_mm: at_middle(&all),
+        open_keypoint_error_mm: percentiles(open.iter().flat_map(|(t, _, _)| t.kp[0].iter().copied()).collect()),
+        open_keypoint_error_floor_mm: floor(&open),
+        open_keypoint_error_at_middle_mm: at_middle(&open),
+    })
+}
+
+/// A view whose true tool turns this far (degrees, end to end) unseen counts as open.
+const OPEN_TURN: f64 = 5.0;
+
+/// Turns per keypoint over which the floor's expectation is taken.
+const FLOOR_SAMPLES: usize = 8;
 
 /// The open arcs against the truth (None: no view left one open). `sweep_step`
 /// (radians) is the arc's resolution: the truth may lie half a step beyond its edge.
@@ -347,7 +423,7 @@ fn trial(
     let truth_kp: Vec<P3> = inst.keypoints.iter().map(|k| pose_pt(&k.position)).collect();
     let truth_world: Vec<P3> = truth_surface.iter().map(pose_pt).collect();
 
-    let scene = Scene::new(&mesh, world_from_tool, Some(0.0)).ok()?;
+    let mut scene = Scene::new(&mesh, world_from_tool, Some(0.0)).ok()?;
     let centre = world_from_tool * Point3::from(mesh.aabb().map(|(lo, hi)| (lo.coords + hi.coords) / 2.0)?);
     let intrinsics = Intrinsics::default();
     let cam_pose = standard_view(view, opts.views, centre, mesh.diagonal(), intrinsics).ok()?;
@@ -361,6 +437,15 @@ fn trial(
         return None;
     }
     add_outliers(&mut cloud, opts.outliers, rng);
+    // What the view itself leaves open: turns of the upright true tool about
+    // its own vertical axis that the camera cannot see.
+    let unseen = (!opts.on_side && !opts.full_surface)
+        .then(|| ambiguity::unseen_turns(&cam, &mut scene, world_from_tool))
+        .flatten()
+        .map(|arc| {
+            let axis = world_from_tool.translation.vector;
+            (arc, truth_kp.iter().map(|k| (Vector3::from(*k) - axis).xy().norm()).collect())
+        });
 
     // Ours.
     let trace = std::env::var_os("GRASPD_EVAL_TRACE").is_some();
@@ -462,6 +547,7 @@ fn trial(
         rotation_error_deg,
         camera,
         arc: reg.yaw_arc.zip(reg.keypoint_spread_m()).map(|(a, s)| (a.half_width_rad, s.iter().map(|x| x * 1e3).collect())),
+        unseen,
     })
     .inspect(|t| {
         if trace {
@@ -480,9 +566,10 @@ fn trial(
             // Whether the view saw each keypoint's surroundings, and (for the mug:
             // handle_middle about base_centre) how far round from the camera the first lies.
             eprintln!(
-                "   cloud points within 15 mm of each true keypoint {near:?}; keypoint 0 azimuth about the last from the camera's {:.0}°; yaw arc open ±{:.1}°",
+                "   cloud points within 15 mm of each true keypoint {near:?}; keypoint 0 azimuth about the last from the camera's {:.0}°; yaw arc open ±{:.1}°; the true tool turns unseen {}",
                 to_cam.angle(&to_kp).to_degrees(),
-                t.arc.as_ref().map_or(0.0, |(h, _)| h.to_degrees())
+                t.arc.as_ref().map_or(0.0, |(h, _)| h.to_degrees()),
+                t.unseen.as_ref().map_or("(not assessed)".into(), |((lo, hi), _)| format!("{:.1}..{:.1}°", lo.to_degrees(), hi.to_degrees()))
             );
             eprintln!("   ours per keypoint {:?}  canonical {:?}", t.kp[0].iter().map(|x| (x * 10.0).round() / 10.0).collect::<Vec<_>>(), t.kp[1].iter().map(|x| (x * 10.0).round() / 10.0).collect::<Vec<_>>());
             match t.camera {

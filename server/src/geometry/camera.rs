@@ -103,6 +103,11 @@ impl Scene {
         let tool = to_parry(tool).ok_or(CameraError::BadMesh)?;
         Ok(Self { tool, world_from_tool, table_z })
     }
+
+    /// Moves the tool to another pose (its mesh's search tree is kept).
+    pub fn place(&mut self, world_from_tool: Isometry3<f64>) {
+        self.world_from_tool = world_from_tool;
+    }
 }
 
 /// Camera pose looking from `eye` at `target`, image "up" toward `up` (OpenCV frame).
