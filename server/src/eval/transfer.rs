@@ -428,10 +428,11 @@ fn trial(
     let intrinsics = Intrinsics::default();
     let cam_pose = standard_view(view, opts.views, centre, mesh.diagonal(), intrinsics).ok()?;
     let cam = DepthCamera { intrinsics, world_from_camera: cam_pose, noise: opts.noise };
+    let capture_seed: u64 = rng.random();
     let mut cloud = if opts.full_surface {
-        sample_points(&mesh, 3000, rng.random()).ok()?.into_iter().map(|p| world_from_tool * p).collect()
+        sample_points(&mesh, 3000, capture_seed).ok()?.into_iter().map(|p| world_from_tool * p).collect()
     } else {
-        cam.capture(&scene, rng.random()).ok()?.points_world
+        cam.capture(&scene, capture_seed).ok()?.points_world
     };
     if cloud.len() < 50 {
         return None;
@@ -448,15 +449,18 @@ fn trial(
         });
 
     // Ours.
+    let register_seed: u64 = rng.random();
     let trace = std::env::var_os("GRASPD_EVAL_TRACE").is_some();
     if trace {
         let (r, p, y) = rot.euler_angles();
         eprintln!(
-            "{} view {view}: truth rpy {:.0} {:.0} {:.0}°",
+            "{} view {view}: truth rpy {:.0} {:.0} {:.0}° (to reproduce: yaw {yaw} rad, scale {scale}, at [{}, {}], capture seed {capture_seed}, register seed {register_seed})",
             inst.name,
             r.to_degrees(),
             p.to_degrees(),
-            y.to_degrees()
+            y.to_degrees(),
+            offset.x,
+            offset.y,
         );
     }
     let t0 = Instant::now();
@@ -464,7 +468,7 @@ fn trial(
     let viewpoint = (opts.known_viewpoint && !opts.full_surface).then_some([t_cam.x, t_cam.y, t_cam.z]);
     let support_height = opts.known_table.then_some(0.0).or(opts.register.support_height);
     let reg = registrar
-        .register(&cloud, &RegisterOptions { seed: rng.random(), viewpoint, support_height, ..opts.register })
+        .register(&cloud, &RegisterOptions { seed: register_seed, viewpoint, support_height, ..opts.register })
         .ok()?;
     let fit_ms = t0.elapsed().as_secs_f64() * 1e3;
     let ours_kp: Vec<P3> = reg.keypoints.iter().map(|k| k.position).collect();
