@@ -159,10 +159,11 @@ pub struct RegisterOptions {
     /// More coarse hypotheses raced when the race's best contradicts the
     /// view (free-space violation over `RACE_CONTRADICTED`): the coarse
     /// stage ranks on the mean shape at 80 points, and a tool far from the
-    /// mean shape can leave its true pose fifth or sixth. Measured, `eval
-    /// transfer --category mug --views 12`, seeds 7 / 11 / 23, 0 → 2:
-    /// training keypoint p90 15.0 / 11.2 / 21.9 → 12.5 / 11.2 / 20.2 mm (six
-    /// views' poses found again, one lost), test identical; on its side
+    /// mean shape can leave its true pose fifth or sixth. A reserve takes
+    /// the lead only by `AMBIGUITY_MARGIN`. Measured, `eval transfer
+    /// --category mug --views 12`, seeds 7 / 11 / 23, 0 → 2: training
+    /// keypoint p90 15.0 / 11.2 / 21.9 → 12.5 / 11.2 / 20.6 mm (four views'
+    /// poses found again, none lost), test identical; on its side
     /// (`--on-side --views 8 --seed 11`) training p90 28.8 → 16.1; drill
     /// and hammer identical; `bench_register mug` the same speed (one of 24
     /// views races the reserve).
@@ -897,9 +898,13 @@ impl Registrar {
         let mut best_violation = f64::NAN;
         let mut queue = survivors.into_iter();
         let mut reserve = reserve.into_iter();
-        while let Some((_, pose, sigma2)) =
-            queue.next().or_else(|| (scoring && best_violation > RACE_CONTRADICTED).then(|| reserve.next()).flatten())
-        {
+        let mut racing_reserve = false;
+        loop {
+            let next = queue.next().or_else(|| {
+                racing_reserve = true;
+                (scoring && best_violation > RACE_CONTRADICTED).then(|| reserve.next()).flatten()
+            });
+            let Some((_, pose, sigma2)) = next else { break };
             let (fit, nll_pt, violation, score) = race(&mut scorer, *pose, *sigma2);
             iterations += fit.iterations;
             if trace_enabled() {
@@ -915,7 +920,15 @@ impl Registrar {
                 }
             }
             raced.push((score, fit.clone()));
-            if best.as_ref().is_none_or(|b| score < b.0) {
+            // A reserve hypothesis, ranked below the four by the coarse
+            // stage, takes the lead only by the ambiguity margin; within it
+            // the race is ambiguous anyway (the runner-up below). Measured
+            // (the six views of `a_mug_whose_true_pose_ranked_fifth_...`: the
+            // reserve's winners led by 0.006-0.65 nats; `sim place
+            // --instances all --grasp-from register`: one training mug's
+            // view lost by a reserve 0.012 ahead).
+            let bar = if racing_reserve { AMBIGUITY_MARGIN } else { 0.0 };
+            if best.as_ref().is_none_or(|b| score < b.0 - bar) {
                 best = Some((score, fit));
                 best_violation = violation;
             }

@@ -595,8 +595,9 @@ fn a_mug_whose_true_pose_ranked_fifth_is_raced_when_the_best_contradicts_the_vie
         }
     }
     assert_eq!(RegisterOptions::default().keep_contradicted, 2);
+    // Two of the six reserves lead by less than the ambiguity margin and are not taken.
     assert!(
-        right[1] >= 5 && right[1] > right[0],
+        right[1] >= 4 && right[1] > right[0],
         "poses found of 6: the race's four {}, with the reserve {}",
         right[0],
         right[1]
