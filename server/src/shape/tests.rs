@@ -559,8 +559,10 @@ fn a_hammer_on_its_side_is_seldom_turned_half_round() {
 /// from `GRASPD_EVAL_TRACE`'s "to reproduce") where the four alone lost it.
 #[test]
 fn a_mug_whose_true_pose_ranked_fifth_is_raced_when_the_best_contradicts_the_view() {
+    // (instance, view of 12, yaw (rad), place on the table, capture seed, register seed)
+    type EvalView = (&'static str, usize, f64, [f64; 2], u64, u64);
     #[rustfmt::skip]
-    let views: [(&str, usize, f64, [f64; 2], u64, u64); 6] = [
+    let views: [EvalView; 6] = [
         ("mug_train_00", 8, 3.7957610010830356, [-0.04091859389462889, -0.08564368711067459], 4807025220587635530, 15724615175267181746),
         ("mug_train_07", 1, 1.573116278199607, [-0.03928120813862299, -0.08017621696636967], 15725432089916840804, 9780663794412164592),
         ("mug_train_04", 3, 0.6932742061656395, [-0.03559692546268813, 0.07362352482152738], 11982674491983804604, 2855417265271327470),
