@@ -136,7 +136,9 @@ pub struct SplitReport {
 
 /// What the views themselves leave open (`eval::ambiguity`): the true
 /// tool's turns about its upright axis that each view cannot see, and the
-/// keypoint error that leaves to any method.
+/// keypoint error that leaves to any method. Judged on the camera's clean
+/// image: without depth noise, mask leak, occluder or outliers, which only
+/// leave more open.
 #[derive(Clone, Debug, Serialize)]
 pub struct ViewAmbiguity {
     /// Views assessed (upright tools).
