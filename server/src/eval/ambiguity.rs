@@ -32,9 +32,10 @@ pub const DEPTH_TOLERANCE_M: f64 = 0.003;
 pub const SEEN_PIXELS: usize = 20;
 
 /// The turns (radians, `lo ≤ 0 ≤ hi`) of the tool about the vertical line
-/// through its origin that change at most [`SEEN_PIXELS`] pixels (in patches) of `camera`'s clean
-/// image of `scene`, found in coarse steps and refined to about 0.5° at each
-/// end; capped at half a turn either way. None when the scene cannot be rendered.
+/// through its origin that change at most [`SEEN_PIXELS`] pixels (in
+/// patches) of `camera`'s clean image of `scene`, found in 4° steps and
+/// refined to 0.5° at each end; capped at half a turn either way. None
+/// when the scene cannot be rendered.
 pub fn unseen_turns(camera: &DepthCamera, scene: &mut Scene, world_from_tool: Isometry3<f64>) -> Option<(f64, f64)> {
     let clean = DepthCamera { noise: DepthNoise::NONE, ..camera.clone() };
     let width = clean.intrinsics.width as usize;
@@ -87,7 +88,7 @@ pub fn unseen_turns(camera: &DepthCamera, scene: &mut Scene, world_from_tool: Is
 /// other, or in both with depths further apart than [`DEPTH_TOLERANCE_M`],
 /// and with at least two of their eight neighbours changed too. Turning a
 /// faceted body of revolution flips scattered single pixels along its
-/// silhouette and rim (20-35 on a built-in mug at half a metre, by the
+/// silhouette and rim (5-35 on a built-in mug at half a metre, by the
 /// facets' phase); a handle coming into view changes a connected band.
 /// Both images sorted by pixel index (a merge: an image is a few thousand
 /// pixels of a 300,000-pixel sensor).
