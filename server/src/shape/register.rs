@@ -840,19 +840,19 @@ impl Registrar {
         // winner then runs to convergence.
         // The best `keep` coarse fits, less those in the basin of a better one:
         // racing a fit twice only costs time.
-        let mut survivors: Vec<&(f64, Pose, f64)> = Vec::new();
-        for fit in scored.iter().take(opts.keep.max(1)) {
-            if !survivors.iter().any(|s| same_basin(&s.1, &fit.1)) {
-                survivors.push(fit);
+        // The next ones in other basins are the reserve, raced only if the
+        // race's best contradicts the view.
+        let (mut survivors, mut reserve): (Vec<&(f64, Pose, f64)>, Vec<_>) = (Vec::new(), Vec::new());
+        for (i, fit) in scored.iter().enumerate() {
+            if i >= opts.keep.max(1) && reserve.len() >= opts.keep_contradicted {
+                break;
             }
-        }
-        // The next ones in other basins, raced only if the race's best contradicts the view.
-        let mut reserve: Vec<&(f64, Pose, f64)> = Vec::new();
-        for fit in scored.iter().skip(opts.keep.max(1)) {
-            if reserve.len() < opts.keep_contradicted
-                && !survivors.iter().chain(&reserve).any(|s| same_basin(&s.1, &fit.1))
-            {
-                reserve.push(fit);
+            if !survivors.iter().chain(&reserve).any(|s| same_basin(&s.1, &fit.1)) {
+                if i < opts.keep.max(1) {
+                    survivors.push(fit)
+                } else {
+                    reserve.push(fit)
+                }
             }
         }
         let race_pts = ViewPoints::new(&race_x);
@@ -896,15 +896,15 @@ impl Registrar {
             (fit, nll_pt, violation, score)
         };
         let mut best_violation = f64::NAN;
+        let n_survivors = survivors.len();
         let mut queue = survivors.into_iter();
         let mut reserve = reserve.into_iter();
-        let mut racing_reserve = false;
         loop {
-            let next = queue.next().or_else(|| {
-                racing_reserve = true;
-                (scoring && best_violation > RACE_CONTRADICTED).then(|| reserve.next()).flatten()
-            });
+            let next = queue
+                .next()
+                .or_else(|| (scoring && best_violation > RACE_CONTRADICTED).then(|| reserve.next()).flatten());
             let Some((_, pose, sigma2)) = next else { break };
+            let racing_reserve = raced.len() >= n_survivors;
             let (fit, nll_pt, violation, score) = race(&mut scorer, *pose, *sigma2);
             iterations += fit.iterations;
             if trace_enabled() {
