@@ -559,8 +559,6 @@ fn a_hammer_on_its_side_is_seldom_turned_half_round() {
 /// from `GRASPD_EVAL_TRACE`'s "to reproduce") where the four alone lost it.
 #[test]
 fn a_mug_whose_true_pose_ranked_fifth_is_raced_when_the_best_contradicts_the_view() {
-    // (instance, view of 12, yaw (rad), place on the table, capture seed, register seed)
-    type EvalView = (&'static str, usize, f64, [f64; 2], u64, u64);
     #[rustfmt::skip]
     let views: [EvalView; 6] = [
         ("mug_train_00", 8, 3.7957610010830356, [-0.04091859389462889, -0.08564368711067459], 4807025220587635530, 15724615175267181746),
@@ -571,29 +569,13 @@ fn a_mug_whose_true_pose_ranked_fifth_is_raced_when_the_best_contradicts_the_vie
         ("mug_train_08", 9, 3.499519735185996, [-0.040452736900519315, -0.013247725422026214], 6876564083239952663, 10237491224835594987),
     ];
     let mut right = [0usize; 2];
-    for (name, view, yaw, at, capture_seed, seed) in views {
-        let inst = tools::instance(Category::Mug, name).unwrap();
-        let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw);
-        let zmin = inst.mesh.vertices.iter().map(|p| (rot * p).z).fold(f64::INFINITY, f64::min);
-        let pose = Isometry3::from_parts(Translation3::new(at[0], at[1], -zmin), rot);
-        let centre = pose * Point3::from(inst.mesh.aabb().map(|(lo, hi)| (lo.coords + hi.coords) / 2.0).unwrap());
-        let intrinsics = Intrinsics::default();
-        let world_from_camera = standard_view(view, 12, centre, inst.mesh.diagonal(), intrinsics).unwrap();
-        let cam = DepthCamera { intrinsics, world_from_camera, noise: DepthNoise::default() };
-        let scene = Scene::new(&inst.mesh, pose, Some(0.0)).unwrap();
-        let cloud = cam.capture(&scene, capture_seed).unwrap().points_world;
-        let v = world_from_camera.translation.vector;
+    for view in &views {
         for (m, keep_contradicted) in [0, 2].into_iter().enumerate() {
-            let opts = RegisterOptions {
-                seed,
-                viewpoint: Some([v.x, v.y, v.z]),
-                support_height: Some(0.0),
-                keep_contradicted,
-                ..RegisterOptions::default()
-            };
-            let r = mug_registrar().register(&cloud, &opts).unwrap();
-            let rot_err = (r.rotation_cloud_from_canonical * rot.inverse()).angle().to_degrees();
-            right[m] += usize::from(rot_err < 15.0);
+            // The sweep's challenger off: it finds four of these six too
+            // (five with the reserve; see the next test).
+            let opts =
+                RegisterOptions { keep_contradicted, sweep_challenger_margin: None, ..RegisterOptions::default() };
+            right[m] += usize::from(mug_eval_view_rotation_error(view, opts) < 15.0);
         }
     }
     assert_eq!(RegisterOptions::default().keep_contradicted, 2);
@@ -601,6 +583,66 @@ fn a_mug_whose_true_pose_ranked_fifth_is_raced_when_the_best_contradicts_the_vie
     assert!(
         right[1] >= 4 && right[1] > right[0],
         "poses found of 6: the race's four {}, with the reserve {}",
+        right[0],
+        right[1]
+    );
+}
+
+/// A view of `eval transfer --category mug --views 12`, from the fields its
+/// trace prints under "to reproduce" (`GRASPD_EVAL_TRACE`): instance, view
+/// of 12, yaw (rad), place on the table, capture seed, register seed.
+type EvalView = (&'static str, usize, f64, [f64; 2], u64, u64);
+
+/// The rotation error (degrees) of the eval's registration of `view`:
+/// `opts` with the view's register seed, the camera's position and the table.
+fn mug_eval_view_rotation_error(view: &EvalView, opts: RegisterOptions) -> f64 {
+    let &(name, view, yaw, at, capture_seed, seed) = view;
+    let inst = tools::instance(Category::Mug, name).unwrap();
+    let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw);
+    let zmin = inst.mesh.vertices.iter().map(|p| (rot * p).z).fold(f64::INFINITY, f64::min);
+    let pose = Isometry3::from_parts(Translation3::new(at[0], at[1], -zmin), rot);
+    let centre = pose * Point3::from(inst.mesh.aabb().map(|(lo, hi)| (lo.coords + hi.coords) / 2.0).unwrap());
+    let intrinsics = Intrinsics::default();
+    let world_from_camera = standard_view(view, 12, centre, inst.mesh.diagonal(), intrinsics).unwrap();
+    let cam = DepthCamera { intrinsics, world_from_camera, noise: DepthNoise::default() };
+    let scene = Scene::new(&inst.mesh, pose, Some(0.0)).unwrap();
+    let cloud = cam.capture(&scene, capture_seed).unwrap().points_world;
+    let v = world_from_camera.translation.vector;
+    let opts = RegisterOptions { seed, viewpoint: Some([v.x, v.y, v.z]), support_height: Some(0.0), ..opts };
+    let r = mug_registrar().register(&cloud, &opts).unwrap();
+    (r.rotation_cloud_from_canonical * rot.inverse()).angle().to_degrees()
+}
+
+/// The race poses the mean shape, whose handle can overhang a mug's own:
+/// with the handle turned to the camera the free-space penalty then
+/// outweighs a clearly better likelihood at the true turn, and the lead
+/// ends half a turn off (`mug_test_01`, 173°). The yaw sweep names the turn
+/// the likelihood prefers and it is raced (`sweep_challenger_margin`). The
+/// views are `eval transfer --category mug --views 12` views (seeds 23, 31
+/// and 47) that ended 40-173° off without.
+#[test]
+fn the_sweep_races_a_turn_the_likelihood_prefers_to_the_arc_the_penalty_chose() {
+    #[rustfmt::skip]
+    let views: [EvalView; 6] = [
+        ("mug_test_01", 3, 1.8249705610870155, [-0.08734043676366128, 0.07529573836732087], 17276483145886802676, 14909025304967615899),
+        ("mug_train_04", 3, 0.6932742061656395, [-0.03559692546268813, 0.07362352482152738], 11982674491983804604, 2855417265271327470),
+        ("mug_train_06", 10, 4.7848778768518905, [-0.08658589114495847, -0.08217325287326044], 17375619305682195069, 12181962909173877628),
+        ("mug_train_04", 10, 3.3816619223141573, [-0.03695744849501919, -0.007046566560975443], 4000983975265459439, 12933732995060772462),
+        ("mug_train_04", 0, 1.9141801989361944, [0.07005235199685565, -0.0895579495173259], 14118070968053101817, 15182391654566357288),
+        ("mug_train_04", 10, 4.238810639789291, [-0.09615861924382987, 0.0007657575759900004], 17211163749902323178, 11276791088310240851),
+    ];
+    let mut right = [0usize; 2];
+    for view in &views {
+        for (m, sweep_challenger_margin) in
+            [None, RegisterOptions::default().sweep_challenger_margin].into_iter().enumerate()
+        {
+            let opts = RegisterOptions { sweep_challenger_margin, ..RegisterOptions::default() };
+            right[m] += usize::from(mug_eval_view_rotation_error(view, opts) < 15.0);
+        }
+    }
+    assert!(
+        right[1] >= 5 && right[0] <= 1,
+        "poses found of 6: without the challenger {}, with it {}",
         right[0],
         right[1]
     );
