@@ -29,7 +29,7 @@ use super::freespace::FreeSpace;
 use super::grid::RadiusGrid;
 use super::sampling::{drop_far_points, drop_stray_points, even_subsample, subsample, BulkBox, TableBand};
 use super::space::{AnchoredModel, LinearModel, NamedPoint, ShapeSpace};
-use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
 use rand::SeedableRng;
 use serde::Serialize;
 use std::time::Instant;
@@ -39,6 +39,7 @@ mod latent;
 mod starts;
 mod surfels;
 mod sweep;
+mod unexplained;
 mod viewpoint;
 
 use em::{em, Fit, Pose, Support, View, ViewPoints, REST_POSE_COS};
@@ -46,6 +47,7 @@ use latent::LatentStep;
 use starts::{principal_frame, side_facing, Starts, UPRIGHT_ONE_WAY, UPRIGHT_SIDE_FACING};
 
 use sweep::{sweep_axis, SweptTurns, YawSweep};
+use unexplained::AzimuthMasks;
 use viewpoint::estimate_viewpoint;
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -217,6 +219,12 @@ pub struct RegisterOptions {
     /// challenger is named it costs nothing (`bench_register mug` names none).
     #[serde(default)]
     pub sweep_challenger_margin: Option<f64>,
+    /// Where the yaw arc is open, count at each turn of the finished fit
+    /// the view's points its shape leaves unexplained, and turn it to the
+    /// turns that leave fewest (see `unexplained`): a handle peeking past
+    /// the body settles what the sweep's averaged scores could not.
+    #[serde(default)]
+    pub narrow_by_unexplained: bool,
     /// Accelerate the refine's latent fit with SQUAREM steps (see `em`; the
     /// polish: `accelerate_polish`).
     /// Measured, eval transfer --views 12, seeds 7 / 11 / 23, test keypoint
@@ -376,6 +384,7 @@ impl Default for RegisterOptions {
             yaw_sweep_margin: 0.08,
             yaw_sweep_screen: true,
             sweep_challenger_margin: Some(0.03),
+            narrow_by_unexplained: true,
             accelerate: true,
             accelerate_polish: false,
             even_sampling: true,
@@ -1174,6 +1183,41 @@ impl Registrar {
                 arc_half_width = None;
             }
             ambiguous_pose |= (theirs - mine).abs() < AMBIGUITY_MARGIN;
+            stage.polish += ms(t_stage);
+        }
+        // An open arc that a part peeking past the body settles (see
+        // `unexplained`): turn the fit to the turns that explain the view's
+        // every point. Open arcs only; where the sweep settled the turn, its
+        // dense scores placed the handle already.
+        if let (true, Some(h), Some(up)) = (opts.narrow_by_unexplained, arc_half_width.filter(|h| *h > 0.0), up) {
+            let t_stage = Instant::now();
+            let shape: Vec<P3> = models.polish.model.evaluate(&fit.latent).iter().map(|y| fit.pose.apply(y)).collect();
+            let origin = Vector3::from(self.space.norm.forward(&[0.0; 3]));
+            let pivot = Vector3::from(fit.pose.apply(&[origin.x, origin.y, origin.z]));
+            let axis = sweep_axis(&fit.pose.r, up);
+            let bin = std::f64::consts::TAU / unexplained::BINS as f64;
+            // The arc and one sweep step past each end, within half a turn.
+            let step = std::f64::consts::TAU / opts.yaw_sweep_steps.max(1) as f64;
+            let reach = (((h + step) / bin).ceil() as i64).min(unexplained::BINS as i64 / 2);
+            let counts = AzimuthMasks::new(&shape, pivot, axis).unexplained(&all, -reach..=reach);
+            if trace_enabled() {
+                eprintln!(
+                    "   unexplained view points by turn of {:.2}° (-{reach}..{reach}), {} points, {:.0} µs: {counts:?}",
+                    bin.to_degrees(),
+                    all.len(),
+                    t_stage.elapsed().as_secs_f64() * 1e6
+                );
+            }
+            if let Some((a, b)) = unexplained::narrowed(&counts, reach as usize, all.len()) {
+                let (a, b) = (a as i64 - reach, b as i64 - reach);
+                let turn = (a + b) as f64 / 2.0 * bin;
+                let r = Rotation3::from_axis_angle(&axis, turn).into_inner() * fit.pose.r;
+                fit.pose = Pose { r, s: fit.pose.s, t: pivot - fit.pose.s * (r * origin) };
+                arc_half_width = Some((b - a) as f64 * bin / 2.0);
+                if trace_enabled() {
+                    eprintln!("   narrowed to turns {a}..{b}: turned {:.1}°", turn.to_degrees());
+                }
+            }
             stage.polish += ms(t_stage);
         }
         // What the view says against the fit: its camera-facing surface where
