@@ -29,7 +29,7 @@ use super::freespace::FreeSpace;
 use super::grid::RadiusGrid;
 use super::sampling::{drop_far_points, drop_stray_points, even_subsample, subsample, BulkBox, TableBand};
 use super::space::{AnchoredModel, LinearModel, NamedPoint, ShapeSpace};
-use nalgebra::{Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
 use rand::SeedableRng;
 use serde::Serialize;
 use std::time::Instant;
@@ -46,7 +46,7 @@ use em::{em, Fit, Pose, Support, View, ViewPoints, REST_POSE_COS};
 use latent::LatentStep;
 use starts::{principal_frame, side_facing, Starts, UPRIGHT_ONE_WAY, UPRIGHT_SIDE_FACING};
 
-use sweep::{sweep_axis, SweptTurns, YawSweep};
+use sweep::{sweep_axis, SweptTurns, TurningLine, YawSweep};
 use unexplained::AzimuthMasks;
 use viewpoint::estimate_viewpoint;
 
@@ -1013,6 +1013,7 @@ impl Registrar {
         // p90 39 / 71° → 28 / 40°; about 1 ms more a fit (bench_register).
         // (fit, the arc's half width when the sweep ran, EM iterations, the challenger)
         type Swept = (Fit, Option<f64>, usize, Option<Pose>);
+        let canonical_origin = Vector3::from(self.space.norm.forward(&[0.0; 3]));
         let sweep = |lead: Fit, viewpoint: Option<Vector3<f64>>, free_space: Option<&FreeSpace>| -> Swept {
             let (Some(up), true) = (up, opts.yaw_sweep_steps >= 4) else { return (lead, None, 0, None) };
             let sweep = YawSweep {
@@ -1022,7 +1023,7 @@ impl Registrar {
                 x: &race_pts,
                 viewpoint,
                 free_space,
-                origin: Vector3::from(self.space.norm.forward(&[0.0; 3])),
+                origin: canonical_origin,
             };
             let SweptTurns { centre, half_width, challenger } = sweep.run(&lead, up, opts);
             let Some(start) = centre else { return (lead, Some(half_width), 0, challenger) };
@@ -1204,14 +1205,12 @@ impl Registrar {
         if let (true, Some(h), Some(up)) = (opts.narrow_by_unexplained, arc_half_width.filter(|h| *h > 0.0), up) {
             let t_stage = Instant::now();
             let shape: Vec<P3> = models.polish.model.evaluate(&fit.latent).iter().map(|y| fit.pose.apply(y)).collect();
-            let origin = Vector3::from(self.space.norm.forward(&[0.0; 3]));
-            let pivot = Vector3::from(fit.pose.apply(&[origin.x, origin.y, origin.z]));
-            let axis = sweep_axis(&fit.pose.r, up);
+            let line = TurningLine::of(&fit.pose, canonical_origin, up);
             let bin = std::f64::consts::TAU / unexplained::BINS as f64;
             // The arc and one sweep step past each end, within half a turn.
             let step = std::f64::consts::TAU / opts.yaw_sweep_steps.max(1) as f64;
             let reach = (((h + step) / bin).ceil() as i64).min(unexplained::BINS as i64 / 2);
-            let counts = AzimuthMasks::new(&shape, pivot, axis).unexplained(&all, -reach..=reach);
+            let counts = AzimuthMasks::new(&shape, line.pivot, line.axis).unexplained(&all, -reach..=reach);
             if trace_enabled() {
                 eprintln!(
                     "   unexplained view points by turn of {:.2}° (-{reach}..{reach}), {} points, {:.0} µs: {counts:?}",
@@ -1223,8 +1222,7 @@ impl Registrar {
             if let Some((a, b)) = unexplained::narrowed(&counts, reach as usize, all.len()) {
                 let (a, b) = (a as i64 - reach, b as i64 - reach);
                 let turn = (a + b) as f64 / 2.0 * bin;
-                let r = Rotation3::from_axis_angle(&axis, turn).into_inner() * fit.pose.r;
-                fit.pose = Pose { r, s: fit.pose.s, t: pivot - fit.pose.s * (r * origin) };
+                fit.pose = line.turned(&fit.pose, turn);
                 arc_half_width = Some((b - a) as f64 * bin / 2.0);
                 if trace_enabled() {
                     eprintln!("   narrowed to turns {a}..{b}: turned {:.1}°", turn.to_degrees());

@@ -11,7 +11,7 @@ use super::{score_posed, trace_enabled, Fit, Pose, RegisterOptions, View, ViewPo
 use crate::shape::estep::P3;
 use crate::shape::freespace::FreeSpace;
 use crate::shape::space::LinearModel;
-use nalgebra::{Matrix3, Rotation3, Vector3};
+use nalgebra::{Matrix3, Rotation3, Unit, Vector3};
 
 /// The turns about the up axis of a fitted pose that explain a view: each
 /// turned pose gets its translation re-fitted (one EM half-step) and is scored
@@ -49,9 +49,7 @@ impl YawSweep<'_> {
         // Turn about the line through the canonical frame's origin along the
         // tool's own axis nearest up: the category's main body axis (the
         // built-in families are built so).
-        let origin = self.origin;
-        let pivot = Vector3::from(lead.pose.apply(&[origin.x, origin.y, origin.z]));
-        let axis = sweep_axis(&lead.pose.r, up);
+        let line = TurningLine::of(&lead.pose, self.origin, up);
         // Truncated sums by blocks once σ is small (`ViewPoints`): a turn moves
         // the model rigidly, so its k-d blocks stay compact and are reused from
         // turn to turn, where a neighbour list had to be rebuilt (the sweep
@@ -60,11 +58,8 @@ impl YawSweep<'_> {
         // three categories: every figure equal to 1e-6).
         let mut estep = self.x.estep();
         let mut weights = Vec::new();
-        // The lead turned by `steps` sweep steps (fractions allowed) about the pivot line.
-        let turned = |steps: f64| -> Pose {
-            let r = Rotation3::from_axis_angle(&axis, steps * step).into_inner() * lead.pose.r;
-            Pose { r, s: lead.pose.s, t: pivot - lead.pose.s * (r * origin) }
-        };
+        // The lead turned by `steps` sweep steps (fractions allowed).
+        let turned = |steps: f64| -> Pose { line.turned(&lead.pose, steps * step) };
         // Turn i's score and its negative log-likelihood per point on a level
         // (+∞ both for turns left out); with `shift`, its translation re-fitted first. The screen does without: the
         // sweep turns about the tool's own axis, which moves its body little,
@@ -185,13 +180,36 @@ impl YawSweep<'_> {
 /// at 0.3 a fit came out 6.5° apart from the unscreened one, at 0.45 none.
 const SWEEP_SCREEN_MARGIN: f64 = 0.7;
 
+/// The line a fit turns about on a table: through the canonical frame's
+/// origin, along [`sweep_axis`].
+pub(super) struct TurningLine {
+    /// The canonical frame's origin in normalised model coordinates.
+    origin: Vector3<f64>,
+    /// Where the fit puts that origin.
+    pub(super) pivot: Vector3<f64>,
+    pub(super) axis: Unit<Vector3<f64>>,
+}
+
+impl TurningLine {
+    pub(super) fn of(pose: &Pose, origin: Vector3<f64>, up: Vector3<f64>) -> Self {
+        let pivot = Vector3::from(pose.apply(&[origin.x, origin.y, origin.z]));
+        Self { origin, pivot, axis: sweep_axis(&pose.r, up) }
+    }
+
+    /// `pose` turned by `angle` (radians) about the line.
+    pub(super) fn turned(&self, pose: &Pose, angle: f64) -> Pose {
+        let r = Rotation3::from_axis_angle(&self.axis, angle).into_inner() * pose.r;
+        Pose { r, s: pose.s, t: self.pivot - pose.s * (r * self.origin) }
+    }
+}
+
 /// The line a yaw sweep turns the lead about: the lead's canonical axis
 /// nearest `up` when it is within 10° of it, else `up`. Turning about the
 /// world's up would swing a fit's small tilt (1-3°) round with the yaw, and
 /// on a 12 cm mug that tilt alone moves the rim by 2-3 mm, about σ: the body,
 /// not the handle, then decided the sweep's scores.
-pub(super) fn sweep_axis(r: &Matrix3<f64>, up: Vector3<f64>) -> nalgebra::Unit<Vector3<f64>> {
-    let up = nalgebra::Unit::new_normalize(up);
+pub(super) fn sweep_axis(r: &Matrix3<f64>, up: Vector3<f64>) -> Unit<Vector3<f64>> {
+    let up = Unit::new_normalize(up);
     let nearest = (0..3)
         .map(|i| {
             let a = r.column(i).into_owned();
@@ -204,7 +222,7 @@ pub(super) fn sweep_axis(r: &Matrix3<f64>, up: Vector3<f64>) -> nalgebra::Unit<V
         .max_by(|a, b| a.dot(&up).total_cmp(&b.dot(&up)))
         .expect("three axes");
     if nearest.dot(&up) > 10f64.to_radians().cos() {
-        nalgebra::Unit::new_normalize(nearest)
+        Unit::new_normalize(nearest)
     } else {
         up
     }
