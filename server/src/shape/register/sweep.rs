@@ -61,8 +61,9 @@ impl YawSweep<'_> {
         // The lead turned by `steps` sweep steps (fractions allowed).
         let turned = |steps: f64| -> Pose { line.turned(&lead.pose, steps * step) };
         // Turn i's score and its negative log-likelihood per point on a level
-        // (+∞ both for turns left out); with `shift`, its translation re-fitted first. The screen does without: the
-        // sweep turns about the tool's own axis, which moves its body little,
+        // (+∞ both for turns left out); with `shift`, its translation
+        // re-fitted first. The screen does without: the sweep turns about
+        // the tool's own axis, which moves its body little,
         // and the screen only passes turns within a wide margin on to the
         // dense scores, which shift. Measured (`VIEWPOINT=known
         // bench_register mug 3`, two alternating pairs): fit p50 6.26 / 6.31
@@ -156,7 +157,10 @@ impl YawSweep<'_> {
         // 0.06-0.07 of its camera-facing points flagged at the true turn).
         // The caller races it: a fit from there, not this turn's score, says
         // whether the view allows it.
-        let in_arc = |i: usize| (0..=left).any(|l| (best + k - l) % k == i) || (0..=right).any(|r| (best + r) % k == i);
+        let in_arc = |i: usize| {
+            let ahead = (i + k - best) % k;
+            ahead <= right || k - ahead <= left
+        };
         let arc_nll = (0..k).filter(|&i| in_arc(i)).map(|i| nlls[i]).fold(f64::INFINITY, f64::min);
         let challenger = opts.sweep_challenger_margin.and_then(|margin| {
             (0..k).filter(|&i| !in_arc(i) && nlls[i] < arc_nll - margin).min_by(|&a, &b| nlls[a].total_cmp(&nlls[b]))
