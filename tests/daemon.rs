@@ -30,6 +30,8 @@ struct Fixture {
     grasp: serde_json::Value,
     /// `graspd register --table-z 0 --json` on the first view (the mug stands on z = 0).
     on_table: serde_json::Value,
+    /// `graspd hand info --json`: the bundled hand the daemon's Grasp solves for.
+    hand: serde_json::Value,
 }
 
 fn fixture() -> &'static Fixture {
@@ -60,7 +62,8 @@ fn fixture() -> &'static Fixture {
         let grasp = graspd_json(&["grasp", "--category", "mug", "--cloud", views[0].0.to_str().unwrap(), "--json"]);
         let first = views[0].0.to_str().unwrap();
         let on_table = graspd_json(&["register", "--category", "mug", "--cloud", first, "--table-z", "0", "--json"]);
-        Fixture { _dir: dir, views, grasp, on_table }
+        let hand = graspd_json(&["hand", "info", "--json"]);
+        Fixture { _dir: dir, views, grasp, on_table, hand }
     })
 }
 
@@ -211,6 +214,13 @@ fn assert_same_registration(got: &graspd_client::Registration, expected: &serde_
     assert_eq!(got.fit.confident, expected["fit"]["confident"].as_bool().unwrap());
     assert_eq!(got.fit.ambiguous_pose, expected["fit"]["ambiguous_pose"].as_bool().unwrap());
     assert_eq!(u64::from(got.fit.stray_points), expected["fit"]["stray_points"].as_u64().unwrap());
+    // Every verdict of the fit the CLI prints travels (protocol 3), in the SDK's SI units.
+    let fit = &expected["fit"];
+    assert_eq!(u64::from(got.fit.table_points), fit["table_points"].as_u64().unwrap());
+    assert_eq!(got.fit.coverage, fit["coverage"].as_f64().unwrap());
+    assert_eq!(got.fit.latent_mahalanobis, fit["latent_mahalanobis"].as_f64().unwrap());
+    assert!((got.fit.view_width_m * 1e3 - fit["view_width_mm"].as_f64().unwrap()).abs() < 1e-9);
+    assert_eq!(got.fit.contradicted_fraction, fit["contradicted_fraction"].as_f64(), "contradicted fraction");
     // No camera position in these requests: the daemon's estimate is the CLI's (null when unsettled).
     let estimated: Option<Vec<f64>> = serde_json::from_value(expected["estimated_viewpoint"].clone()).unwrap();
     assert_eq!(got.viewpoint.estimated().map(|p| p.to_vec()), estimated, "estimated viewpoint");
@@ -254,6 +264,11 @@ fn concurrent_clients_get_the_same_answers_as_the_cli() {
         t.join().expect("client thread");
     }
     let mut c = d.client();
+    // Health names the hand Grasp solves for, as `graspd hand info` does; the category says it is served.
+    let h = c.health().unwrap();
+    assert_eq!(h.hand_name.as_deref(), f.hand["name"].as_str());
+    assert_eq!(h.hand_actuated_joints as usize, f.hand["actuated"].as_array().unwrap().len());
+    assert_eq!(c.categories().unwrap()[0].grasp_available, h.grasp_available);
     // A given table is the registration's support, as `graspd register --table-z` makes it.
     let on_table = CloudOptions { table: Some(graspd_client::Table::At(0.0)), ..CloudOptions::default() };
     let r = c.register_with("mug", &f.views[0].1, &on_table, TIMEOUT).unwrap();
@@ -659,6 +674,8 @@ fn a_configured_hand_serves_grasp_under_its_own_names() {
     let demo = renamed.mug_demo.to_str().unwrap();
     let hand = format!("hand_urdf = \"{urdf}\"\nhand_keypoints = \"{keypoints}\"\n");
     let d = Daemon::start("hand", &format!("{hand}[demos]\nmug = \"{demo}\""));
+    let h = d.client().health().unwrap();
+    assert_eq!(h.hand_name.as_deref(), Some(graspd::hand::renamed::ROBOT), "Health names the configured hand");
     let g = d.client().grasp("mug", &f.views[0].1, TIMEOUT).unwrap();
     let expected = &f.grasp["grasp"];
     assert_eq!(g.grasp.wrist_pose.translation.to_vec(), floats(&expected["wrist_pose"]["translation"]));
@@ -744,6 +761,7 @@ fn the_python_sdk_answers_as_the_cli() {
         "register": expected,
         "grasp": f.grasp,
         "on_table": f.on_table,
+        "hand": f.hand,
     });
     std::fs::write(&fixture_file, serde_json::to_vec(&v).unwrap()).unwrap();
     let out = Command::new(&python)

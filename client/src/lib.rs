@@ -142,7 +142,12 @@ pub struct Health {
     pub max_points: u32,
     pub max_in_flight_per_client: u32,
     pub workers: u32,
+    /// Grasp serves at least one category (see [`CategoryInfo::grasp_available`]).
     pub grasp_available: bool,
+    /// The hand Grasp solves for (its URDF robot name); None when no hand loaded.
+    pub hand_name: Option<String>,
+    /// Its actuated joints (0 when no hand loaded).
+    pub hand_actuated_joints: u32,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -151,6 +156,8 @@ pub struct CategoryInfo {
     pub latent_dim: u32,
     pub keypoints: Vec<String>,
     pub canonical_frame: String,
+    /// Grasp serves this category (the hand and its demonstration loaded).
+    pub grasp_available: bool,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -180,6 +187,19 @@ pub struct Fit {
     /// Points of the request set aside as stray before the fit (flying pixels,
     /// speckle, segmentation leaks); they count as outside in `inlier_fraction`.
     pub stray_points: u32,
+    /// Of `stray_points`, those set aside as the table a leaking segmentation included.
+    pub table_points: u32,
+    /// Fraction of the completed shape's surface near a point of the cloud:
+    /// how much of the tool the view shows (proto/README.md).
+    pub coverage: f64,
+    /// The view's width across its longest direction, metres.
+    pub view_width_m: f64,
+    /// How far the fitted latent lies outside the category's family (standard deviations).
+    pub latent_mahalanobis: f64,
+    /// Share of the fitted shape's camera-facing surface the view
+    /// contradicts (something in front of the tool raises it); None when
+    /// not assessed (no camera position, given or estimated).
+    pub contradicted_fraction: Option<f64>,
     /// The turns about the tool's upright axis that explain the view about as
     /// well as the reported pose reach this far either way of it, radians; 0
     /// when the view settles the turn; None when not assessed (no up
@@ -799,6 +819,8 @@ impl Client {
             max_in_flight_per_client: r.max_in_flight_per_client,
             workers: r.workers,
             grasp_available: r.grasp_available != 0,
+            hand_name: Some(proto::text_lossy(&r.hand_name)).filter(|n| !n.is_empty()),
+            hand_actuated_joints: r.hand_actuated_joints,
         })
     }
 
@@ -814,6 +836,7 @@ impl Client {
                     .map(|n| proto::text_lossy(n))
                     .collect(),
                 canonical_frame: proto::text_lossy(&c.canonical_frame),
+                grasp_available: c.grasp_available != 0,
             })
             .collect())
     }
@@ -1032,6 +1055,11 @@ fn registration(r: &proto::Registration, category: &str, frame: &str) -> Registr
             confident: r.confident != 0,
             ambiguous_pose: r.ambiguous_pose != 0,
             stray_points: r.stray_points,
+            table_points: r.table_points,
+            coverage: r.coverage,
+            view_width_m: r.view_width_m,
+            latent_mahalanobis: r.latent_mahalanobis,
+            contradicted_fraction: (r.contradicted_fraction >= 0.0).then_some(r.contradicted_fraction),
             yaw_half_width_rad: (r.yaw_half_width_rad >= 0.0).then_some(f64::from(r.yaw_half_width_rad)),
         },
         keypoints: r.keypoints[..(r.keypoint_count as usize).min(proto::MAX_KEYPOINTS)]

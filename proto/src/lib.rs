@@ -4,7 +4,7 @@
 //! Every type here is `#[repr(C)]`, holds only integers, floats and fixed
 //! arrays of them (any bit pattern is a valid value, all zeros is a valid
 //! value), has no implicit padding, and carries a stable iceoryx2 type name
-//! (`graspd.v2.*`) so that clients in other languages can open the same
+//! (`graspd.v3.*`) so that clients in other languages can open the same
 //! services. README.md in this crate is the reference for each field, unit
 //! and frame; the layout tests at the bottom pin sizes and offsets.
 //!
@@ -19,20 +19,26 @@ use iceoryx2::prelude::ZeroCopySend;
 pub mod json;
 
 /// Bumped whenever a message layout or a field's meaning changes. The type
-/// names carry the major version too (`graspd.v2.*`), so a client built
+/// names carry the major version too (`graspd.v3.*`), so a client built
 /// against another layout cannot even open the services.
 ///
 /// Version 2 (2026-12-03): `MAX_LATENT` 8 → 16 (a space keeps every mode its
 /// training tools give: 9 for the built-in families, worth 0.1 mm on the
 /// drill's keypoints), and `Registration` carries the camera position the
 /// fit used (`viewpoint_cloud_m`, `viewpoint_source`).
-pub const PROTOCOL_VERSION: u32 = 2;
+///
+/// Version 3 (2026-12-07): `Registration` carries every verdict of the fit
+/// that `graspd register --json` prints (`coverage`, `view_width_m`,
+/// `latent_mahalanobis`, `contradicted_fraction`, and `table_points` of the
+/// stray ones); Health names the hand Grasp solves for; each category says
+/// whether Grasp serves it.
+pub const PROTOCOL_VERSION: u32 = 3;
 
-/// Service names are `<prefix>/v2/<method>`; the prefix is configurable so
+/// Service names are `<prefix>/v3/<method>`; the prefix is configurable so
 /// that several daemons (or parallel tests) can share one machine.
 pub const DEFAULT_PREFIX: &str = "graspd";
 /// The path segment of this protocol's major version.
-pub const VERSION_SEGMENT: &str = "v2";
+pub const VERSION_SEGMENT: &str = "v3";
 
 /// Fixed-size UTF-8 name: the bytes of the string, NUL padded. A name of
 /// exactly 32 bytes has no terminator.
@@ -77,19 +83,19 @@ impl Method {
         }
     }
 
-    /// `<prefix>/v2/<method>`: the request-response service.
+    /// `<prefix>/v3/<method>`: the request-response service.
     pub fn service_name(self, prefix: &str) -> String {
         format!("{prefix}/{VERSION_SEGMENT}/{}", self.name())
     }
 
-    /// `<prefix>/v2/<method>/notify`: the event service a client notifies
+    /// `<prefix>/v3/<method>/notify`: the event service a client notifies
     /// after sending a request, so that an event-driven daemon wakes up.
     pub fn notify_service_name(self, prefix: &str) -> String {
         format!("{prefix}/{VERSION_SEGMENT}/{}/notify", self.name())
     }
 }
 
-/// `<prefix>/v2/reply/<token as 16 lower-case hex digits>`: the event service
+/// `<prefix>/v3/reply/<token as 16 lower-case hex digits>`: the event service
 /// a client creates (one listener: the client) and names in
 /// [`RequestHeader::notify_token`]; the daemon notifies it after each response.
 pub fn reply_service_name(prefix: &str, token: u64) -> String {
@@ -243,7 +249,7 @@ unsafe impl Plain for NoPayload {}
 
 /// The request user header of every method (iceoryx2 "user header"), 144 bytes.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v2.RequestHeader")]
+#[type_name("graspd.v3.RequestHeader")]
 #[repr(C)]
 pub struct RequestHeader {
     /// Chosen by the client, echoed in the response.
@@ -293,7 +299,7 @@ pub mod flags {
 /// One point of a cloud: (x, y, z) in metres in the request's `cloud_frame`.
 /// Layout identical to `[f32; 3]` / `float[3]` (12 bytes, alignment 4).
 #[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
-#[type_name("graspd.v2.Point")]
+#[type_name("graspd.v3.Point")]
 #[repr(C)]
 pub struct Point(pub [f32; 3]);
 
@@ -308,7 +314,7 @@ impl Point {
 
 /// The request payload of methods without one (Health, ListCategories, Stats).
 #[derive(Clone, Copy, Debug, Default, ZeroCopySend)]
-#[type_name("graspd.v2.NoPayload")]
+#[type_name("graspd.v3.NoPayload")]
 #[repr(C)]
 pub struct NoPayload {
     pub reserved: u64,
@@ -316,7 +322,7 @@ pub struct NoPayload {
 
 /// The response user header of every method, 160 bytes.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v2.ResponseHeader")]
+#[type_name("graspd.v3.ResponseHeader")]
 #[repr(C)]
 pub struct ResponseHeader {
     /// The request's `request_id`.
@@ -337,7 +343,7 @@ pub struct ResponseHeader {
 
 /// Health response body.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v2.HealthResponse")]
+#[type_name("graspd.v3.HealthResponse")]
 #[repr(C)]
 pub struct HealthResponse {
     pub uptime_ns: u64,
@@ -356,16 +362,21 @@ pub struct HealthResponse {
     /// Requests one client may have in flight; more get RESOURCE_EXHAUSTED.
     pub max_in_flight_per_client: u32,
     pub workers: u32,
-    /// 1 when this build serves Grasp, 0 when Grasp answers FAILED_PRECONDITION.
+    /// 1 when Grasp serves at least one category (see
+    /// [`CategoryInfo::grasp_available`]), 0 when Grasp answers FAILED_PRECONDITION.
     pub grasp_available: u32,
-    pub reserved: u32,
+    /// Actuated joints of the hand Grasp solves for (0 when no hand loaded).
+    pub hand_actuated_joints: u32,
     /// The daemon's version, e.g. "0.1.0".
     pub server_version: Name,
+    /// The name of the hand Grasp solves for (its URDF robot name, e.g.
+    /// "sih_like_hand"); empty when no hand loaded.
+    pub hand_name: Name,
 }
 
 /// One category the daemon serves.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v2.CategoryInfo")]
+#[type_name("graspd.v3.CategoryInfo")]
 #[repr(C)]
 pub struct CategoryInfo {
     pub name: Name,
@@ -376,11 +387,15 @@ pub struct CategoryInfo {
     pub keypoint_names: [Name; MAX_KEYPOINTS],
     /// The category's canonical frame in words (UTF-8, NUL padded, may be truncated).
     pub canonical_frame: [u8; FRAME_TEXT_LEN],
+    /// 1 when Grasp serves this category (the hand and its demonstration
+    /// loaded), 0 when Grasp answers FAILED_PRECONDITION for it.
+    pub grasp_available: u32,
+    pub reserved: u32,
 }
 
 /// ListCategories response body.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v2.CategoriesResponse")]
+#[type_name("graspd.v3.CategoriesResponse")]
 #[repr(C)]
 pub struct CategoriesResponse {
     pub count: u32,
@@ -390,7 +405,7 @@ pub struct CategoriesResponse {
 
 /// A named point of a registration (a transferred keypoint).
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v2.Keypoint")]
+#[type_name("graspd.v3.Keypoint")]
 #[repr(C)]
 pub struct Keypoint {
     pub name: Name,
@@ -400,7 +415,7 @@ pub struct Keypoint {
 
 /// A registration of a category's shape space to a cloud.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v2.Registration")]
+#[type_name("graspd.v3.Registration")]
 #[repr(C)]
 pub struct Registration {
     /// Latent shape coordinates (first `latent_dim` used; the rest zero).
@@ -422,6 +437,22 @@ pub struct Registration {
     /// request's `viewpoint_in_cloud_m`, or the one the daemon estimated from
     /// the view; zero when `viewpoint_source` is NONE.
     pub viewpoint_cloud_m: [f64; 3],
+    /// Fraction of the completed shape's surface near a point of the cloud:
+    /// how much of the tool the view shows (one camera view: 0.25-0.5; a
+    /// line or a blob of points: a few percent, never confident).
+    pub coverage: f64,
+    /// The view's width across its longest direction, metres (a line of
+    /// points has none).
+    pub view_width_m: f64,
+    /// How far the fitted latent lies outside the category's family, in
+    /// standard deviations of the shape space's prior (√Σ ℓⱼ²/varⱼ).
+    pub latent_mahalanobis: f64,
+    /// Share of the fitted shape's camera-facing surface the view
+    /// contradicts (where the camera saw nothing, or saw past it); −1 when
+    /// not assessed (no camera position, given or estimated). Right fits of
+    /// clear views: 0.00-0.06; something in front of the tool: 0.1-0.6 (see
+    /// README.md).
+    pub contradicted_fraction: f64,
     pub latent_dim: u32,
     pub keypoint_count: u32,
     /// 1 when the fit explains the cloud (inlier fraction ≥ 0.7) and the
@@ -448,13 +479,17 @@ pub struct Registration {
     /// The axis: the canonical axis nearest the request's up direction,
     /// through `translation_cloud_from_canonical_m` (see README.md).
     pub yaw_half_width_rad: f32,
+    /// Of `stray_points`, those set aside as the table a leaking
+    /// segmentation included (0 when no up direction or table is known).
+    pub table_points: u32,
+    pub reserved: u32,
     /// Canonical keypoints moved through the fitted deformation and pose.
     pub keypoints: [Keypoint; MAX_KEYPOINTS],
 }
 
 /// Register response body.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v2.RegisterResponse")]
+#[type_name("graspd.v3.RegisterResponse")]
 #[repr(C)]
 pub struct RegisterResponse {
     pub registration: Registration,
@@ -462,7 +497,7 @@ pub struct RegisterResponse {
 
 /// A hand configuration: wrist (palm root link) pose and joint positions.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v2.HandConfiguration")]
+#[type_name("graspd.v3.HandConfiguration")]
 #[repr(C)]
 pub struct HandConfiguration {
     /// Rotation of the hand's root (palm) frame into the cloud's frame, (x, y, z, w).
@@ -477,7 +512,7 @@ pub struct HandConfiguration {
 
 /// Grasp response body: registration, grasp and pre-grasp in one round trip.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v2.GraspResponse")]
+#[type_name("graspd.v3.GraspResponse")]
 #[repr(C)]
 pub struct GraspResponse {
     pub registration: Registration,
@@ -507,7 +542,7 @@ pub struct GraspResponse {
 
 /// Counters and latencies of one method.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v2.MethodStats")]
+#[type_name("graspd.v3.MethodStats")]
 #[repr(C)]
 pub struct MethodStats {
     pub name: Name,
@@ -533,7 +568,7 @@ pub struct MethodStats {
 
 /// Stats response body.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v2.StatsResponse")]
+#[type_name("graspd.v3.StatsResponse")]
 #[repr(C)]
 pub struct StatsResponse {
     pub uptime_ns: u64,
@@ -682,21 +717,27 @@ mod tests {
         assert_eq!((size_of::<ResponseHeader>(), align_of::<ResponseHeader>()), (160, 8));
         assert_eq!(offset_of!(ResponseHeader, status), 24);
         assert_eq!(offset_of!(ResponseHeader, message), 32);
-        assert_eq!(size_of::<HealthResponse>(), 88);
-        assert_eq!(size_of::<CategoryInfo>(), 32 + 8 + 256 + 384);
-        assert_eq!(size_of::<CategoriesResponse>(), 8 + 8 * 680);
+        assert_eq!(size_of::<HealthResponse>(), 120);
+        assert_eq!(offset_of!(HealthResponse, hand_actuated_joints), 52);
+        assert_eq!(offset_of!(HealthResponse, hand_name), 88);
+        assert_eq!(size_of::<CategoryInfo>(), 32 + 8 + 256 + 384 + 8);
+        assert_eq!(offset_of!(CategoryInfo, grasp_available), 680);
+        assert_eq!(size_of::<CategoriesResponse>(), 8 + 8 * 688);
         assert_eq!(size_of::<Keypoint>(), 56);
         assert_eq!(offset_of!(Registration, rotation_cloud_from_canonical_xyzw), 128);
         assert_eq!(offset_of!(Registration, viewpoint_cloud_m), 224);
-        assert_eq!(offset_of!(Registration, latent_dim), 248);
-        assert_eq!(offset_of!(Registration, viewpoint_source), 272);
-        assert_eq!(offset_of!(Registration, keypoints), 280);
-        assert_eq!(size_of::<Registration>(), 280 + 8 * 56);
+        assert_eq!(offset_of!(Registration, coverage), 248);
+        assert_eq!(offset_of!(Registration, contradicted_fraction), 272);
+        assert_eq!(offset_of!(Registration, latent_dim), 280);
+        assert_eq!(offset_of!(Registration, viewpoint_source), 304);
+        assert_eq!(offset_of!(Registration, table_points), 312);
+        assert_eq!(offset_of!(Registration, keypoints), 320);
+        assert_eq!(size_of::<Registration>(), 320 + 8 * 56);
         assert_eq!(size_of::<HandConfiguration>(), 312);
-        assert_eq!(offset_of!(GraspResponse, grasp), 728);
-        assert_eq!(offset_of!(GraspResponse, actuated_names), 728 + 624);
-        assert_eq!(offset_of!(GraspResponse, task_space_distance_m), 728 + 624 + 1024);
-        assert_eq!(size_of::<GraspResponse>(), 728 + 624 + 1024 + 48 + 24);
+        assert_eq!(offset_of!(GraspResponse, grasp), 768);
+        assert_eq!(offset_of!(GraspResponse, actuated_names), 768 + 624);
+        assert_eq!(offset_of!(GraspResponse, task_space_distance_m), 768 + 624 + 1024);
+        assert_eq!(size_of::<GraspResponse>(), 768 + 624 + 1024 + 48 + 24);
         assert_eq!(size_of::<MethodStats>(), 32 + 8 + 128 + 8 + 48 + 8);
         assert_eq!(size_of::<StatsResponse>(), 32 + 8 * 232);
     }
@@ -752,7 +793,7 @@ mod tests {
         assert_eq!(StatusCode::Unavailable as u32, 14);
         assert_eq!(StatusCode::from_u32(9), StatusCode::FailedPrecondition);
         assert_eq!(StatusCode::from_u32(12345), StatusCode::Internal);
-        assert_eq!(Method::Register.service_name("graspd"), "graspd/v2/register");
-        assert_eq!(reply_service_name("p", 255), "p/v2/reply/00000000000000ff");
+        assert_eq!(Method::Register.service_name("graspd"), "graspd/v3/register");
+        assert_eq!(reply_service_name("p", 255), "p/v3/reply/00000000000000ff");
     }
 }

@@ -72,6 +72,9 @@ pub struct DaemonGrasp {
     /// The turns about the tool's upright axis the view left open (half
     /// width, rad; 0: settled; None: not assessed).
     pub yaw_half_width_rad: Option<f64>,
+    /// Share of the fitted shape's camera-facing surface the view
+    /// contradicts (something in front of the tool raises it; None: not assessed).
+    pub contradicted_fraction: Option<f64>,
     /// The daemon's warnings (e.g. `registration_not_confident`).
     pub warnings: Vec<String>,
     pub cloud_points: usize,
@@ -244,6 +247,7 @@ impl DaemonGrasper {
             registration_confident: answer.registration.fit.confident,
             ambiguous_pose: answer.registration.fit.ambiguous_pose,
             yaw_half_width_rad: answer.registration.fit.yaw_half_width_rad,
+            contradicted_fraction: answer.registration.fit.contradicted_fraction,
             warnings: answer.warnings.iter().map(|w| (*w).to_owned()).collect(),
             cloud_points: cloud.len(),
             latency_ms,
@@ -315,6 +319,7 @@ impl EngineBackend {
             registration_confident: reg.fit.confident,
             ambiguous_pose: reg.fit.ambiguous_pose,
             yaw_half_width_rad: reg.yaw_arc.map(|a| a.half_width_rad),
+            contradicted_fraction: reg.fit.contradicted_fraction,
             warnings,
             cloud_points: cloud.len(),
             latency_ms: 0.0,
@@ -443,6 +448,11 @@ mod tests {
                     confident: true,
                     ambiguous_pose: false,
                     stray_points: 0,
+                    table_points: 0,
+                    coverage: 0.4,
+                    view_width_m: 0.08,
+                    latent_mahalanobis: 1.0,
+                    contradicted_fraction: Some(0.01),
                     yaw_half_width_rad: Some(0.0),
                 },
                 keypoints: Vec::new(),

@@ -242,6 +242,9 @@ pub struct GraspInfo {
     /// From a camera view only: the turns about the tool's upright axis the
     /// view left open, half width (rad; 0: settled).
     pub yaw_half_width_rad: Option<f64>,
+    /// From a camera view only: the share of the fitted shape's camera-facing
+    /// surface the view contradicts (something in front of the tool raises it).
+    pub contradicted_fraction: Option<f64>,
     /// From a camera view only: how far the registered canonical frame is from the
     /// tool's own frame (its origin's offset, m; its turn, rad) and the
     /// registered scale. A tool's mesh is given in its category's canonical
@@ -490,6 +493,7 @@ impl GraspPlanner {
                 info.registration_confident = Some(d.registration_confident);
                 info.ambiguous_pose = Some(d.ambiguous_pose);
                 info.yaw_half_width_rad = d.yaw_half_width_rad;
+                info.contradicted_fraction = d.contradicted_fraction;
                 info.registered_offset_m = Some(d.tool_from_canonical.translation.norm());
                 info.registered_turn_rad = Some(d.tool_from_canonical.rotation.angle());
                 info.registered_scale = Some(d.tool_from_canonical.scale);

@@ -122,6 +122,12 @@ def _registration(r, cloud_frame):
             "ambiguous_pose": bool(r.ambiguous_pose),
             "stray_fraction": r.stray_points / r.points if r.points else 0.0,
             "stray_points": r.stray_points,
+            "table_points": r.table_points,
+            "coverage": r.coverage,
+            "view_width_mm": r.view_width_m * 1e3,
+            "latent_mahalanobis": r.latent_mahalanobis,
+            # Something in front of the tool raises it (None: not assessed); proto/README.md.
+            "contradicted_fraction": r.contradicted_fraction if r.contradicted_fraction >= 0 else None,
             # The turns the view leaves open about the tool's upright axis, radians
             # (0: settled; None: not assessed); proto/README.md, `yaw_half_width_rad`.
             "yaw_half_width_rad": float(r.yaw_half_width_rad) if r.yaw_half_width_rad >= 0 else None,
@@ -312,6 +318,8 @@ class Client:
             "uptime_s": h.uptime_ns * 1e-9,
             "startup_ms": h.startup_ns * 1e-6,
             "server_version": proto.text(h.server_version),
+            "hand_name": proto.text(h.hand_name) or None,
+            "hand_actuated_joints": h.hand_actuated_joints,
         }
 
     def categories(self):
@@ -324,6 +332,7 @@ class Client:
                 "latent_dim": c.latent_dim,
                 "keypoints": [proto.text(n) for n in c.keypoint_names[: min(c.keypoint_count, proto.MAX_KEYPOINTS)]],
                 "canonical_frame": proto.text(c.canonical_frame),
+                "grasp_available": bool(c.grasp_available),
             })
         return out
 

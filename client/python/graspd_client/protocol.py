@@ -1,4 +1,4 @@
-"""The graspd.v2 wire types as ctypes structures, written from proto/README.md.
+"""The graspd.v3 wire types as ctypes structures, written from proto/README.md.
 
 Each class mirrors one table of that file byte for byte (sizes and offsets
 are checked by ``check_layouts``) and names itself to iceoryx2 with the
@@ -8,9 +8,9 @@ these types. Little-endian, native alignment, explicit ``reserved`` fields.
 
 import ctypes
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 DEFAULT_PREFIX = "graspd"
-VERSION_SEGMENT = "v2"
+VERSION_SEGMENT = "v3"
 
 MAX_KEYPOINTS = 8
 MAX_LATENT = 16
@@ -48,7 +48,7 @@ def _named(type_name):
     return wrap
 
 
-@_named("graspd.v2.RequestHeader")
+@_named("graspd.v3.RequestHeader")
 class RequestHeader(ctypes.Structure):
     _fields_ = [
         ("request_id", ctypes.c_uint64),
@@ -68,17 +68,17 @@ class RequestHeader(ctypes.Structure):
     ]
 
 
-@_named("graspd.v2.Point")
+@_named("graspd.v3.Point")
 class Point(ctypes.Structure):
     _fields_ = [("x", ctypes.c_float), ("y", ctypes.c_float), ("z", ctypes.c_float)]
 
 
-@_named("graspd.v2.NoPayload")
+@_named("graspd.v3.NoPayload")
 class NoPayload(ctypes.Structure):
     _fields_ = [("reserved", ctypes.c_uint64)]
 
 
-@_named("graspd.v2.ResponseHeader")
+@_named("graspd.v3.ResponseHeader")
 class ResponseHeader(ctypes.Structure):
     _fields_ = [
         ("request_id", ctypes.c_uint64),
@@ -90,7 +90,7 @@ class ResponseHeader(ctypes.Structure):
     ]
 
 
-@_named("graspd.v2.HealthResponse")
+@_named("graspd.v3.HealthResponse")
 class HealthResponse(ctypes.Structure):
     _fields_ = [
         ("uptime_ns", ctypes.c_uint64),
@@ -104,8 +104,9 @@ class HealthResponse(ctypes.Structure):
         ("max_in_flight_per_client", ctypes.c_uint32),
         ("workers", ctypes.c_uint32),
         ("grasp_available", ctypes.c_uint32),
-        ("reserved", ctypes.c_uint32),
+        ("hand_actuated_joints", ctypes.c_uint32),
         ("server_version", Name),
+        ("hand_name", Name),
     ]
 
 
@@ -116,10 +117,12 @@ class CategoryInfo(ctypes.Structure):
         ("keypoint_count", ctypes.c_uint32),
         ("keypoint_names", Name * MAX_KEYPOINTS),
         ("canonical_frame", ctypes.c_uint8 * 384),
+        ("grasp_available", ctypes.c_uint32),
+        ("reserved", ctypes.c_uint32),
     ]
 
 
-@_named("graspd.v2.CategoriesResponse")
+@_named("graspd.v3.CategoriesResponse")
 class CategoriesResponse(ctypes.Structure):
     _fields_ = [
         ("count", ctypes.c_uint32),
@@ -132,7 +135,7 @@ class Keypoint(ctypes.Structure):
     _fields_ = [("name", Name), ("position_cloud_m", ctypes.c_double * 3)]
 
 
-@_named("graspd.v2.RegisterResponse")
+@_named("graspd.v3.RegisterResponse")
 class Registration(ctypes.Structure):
     _fields_ = [
         ("latent", ctypes.c_double * MAX_LATENT),
@@ -144,6 +147,10 @@ class Registration(ctypes.Structure):
         ("residual_m", ctypes.c_double),
         ("inlier_threshold_m", ctypes.c_double),
         ("viewpoint_cloud_m", ctypes.c_double * 3),
+        ("coverage", ctypes.c_double),
+        ("view_width_m", ctypes.c_double),
+        ("latent_mahalanobis", ctypes.c_double),
+        ("contradicted_fraction", ctypes.c_double),
         ("latent_dim", ctypes.c_uint32),
         ("keypoint_count", ctypes.c_uint32),
         ("confident", ctypes.c_uint32),
@@ -152,6 +159,8 @@ class Registration(ctypes.Structure):
         ("stray_points", ctypes.c_uint32),
         ("viewpoint_source", ctypes.c_uint32),
         ("yaw_half_width_rad", ctypes.c_float),
+        ("table_points", ctypes.c_uint32),
+        ("reserved", ctypes.c_uint32),
         ("keypoints", Keypoint * MAX_KEYPOINTS),
     ]
 
@@ -168,7 +177,7 @@ class HandConfiguration(ctypes.Structure):
     ]
 
 
-@_named("graspd.v2.GraspResponse")
+@_named("graspd.v3.GraspResponse")
 class GraspResponse(ctypes.Structure):
     _fields_ = [
         ("registration", Registration),
@@ -208,7 +217,7 @@ class MethodStats(ctypes.Structure):
     ]
 
 
-@_named("graspd.v2.StatsResponse")
+@_named("graspd.v3.StatsResponse")
 class StatsResponse(ctypes.Structure):
     _fields_ = [
         ("uptime_ns", ctypes.c_uint64),
@@ -227,15 +236,17 @@ LAYOUTS = [
     (Point, 12, 4, {}),
     (NoPayload, 8, 8, {}),
     (ResponseHeader, 160, 8, {"status": 24, "message": 32}),
-    (HealthResponse, 88, 8, {"grasp_available": 48, "server_version": 56}),
-    (CategoryInfo, 680, 4, {"latent_dim": 32, "keypoint_names": 40, "canonical_frame": 296}),
-    (CategoriesResponse, 5448, 4, {"categories": 8}),
+    (HealthResponse, 120, 8, {"grasp_available": 48, "hand_actuated_joints": 52, "server_version": 56,
+                              "hand_name": 88}),
+    (CategoryInfo, 688, 4, {"latent_dim": 32, "keypoint_names": 40, "canonical_frame": 296, "grasp_available": 680}),
+    (CategoriesResponse, 5512, 4, {"categories": 8}),
     (Keypoint, 56, 8, {"position_cloud_m": 32}),
-    (Registration, 728, 8, {"rotation_cloud_from_canonical_xyzw": 128, "scale": 184, "viewpoint_cloud_m": 224,
-                            "latent_dim": 248, "stray_points": 268, "viewpoint_source": 272, "keypoints": 280}),
+    (Registration, 768, 8, {"rotation_cloud_from_canonical_xyzw": 128, "scale": 184, "viewpoint_cloud_m": 224,
+                            "coverage": 248, "contradicted_fraction": 272, "latent_dim": 280, "stray_points": 300,
+                            "viewpoint_source": 304, "table_points": 312, "keypoints": 320}),
     (HandConfiguration, 312, 8, {"actuated": 56, "joints": 184}),
-    (GraspResponse, 2448, 8, {"grasp": 728, "pregrasp": 1040, "actuated_names": 1352, "joint_names": 1864,
-                              "task_space_distance_m": 2376, "table_z_m": 2416, "warnings": 2440}),
+    (GraspResponse, 2488, 8, {"grasp": 768, "pregrasp": 1080, "actuated_names": 1392, "joint_names": 1904,
+                              "task_space_distance_m": 2416, "table_z_m": 2456, "warnings": 2480}),
     (MethodStats, 232, 8, {"requests": 32, "slow": 168, "latency_p50_us": 176, "window": 224}),
     (StatsResponse, 1888, 8, {"methods": 32}),
 ]

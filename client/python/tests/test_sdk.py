@@ -41,11 +41,14 @@ def test_the_wire_types_have_the_contracts_layout():
 @needs_daemon
 def test_health_and_categories(client, fixture):
     h = client.health()
-    assert h["serving"] and h["protocol_version"] == proto.PROTOCOL_VERSION == 2 and h["max_points"] > 0
+    assert h["serving"] and h["protocol_version"] == proto.PROTOCOL_VERSION == 3 and h["max_points"] > 0
+    # The bundled hand: its URDF name and actuated joints, as `graspd hand info --json` says.
+    assert h["hand_name"] == fixture["hand"]["name"] and h["hand_actuated_joints"] == len(fixture["hand"]["actuated"])
     cats = client.categories()
     assert [c["name"] for c in cats] == ["mug"]
     assert cats[0]["keypoints"] == [k["name"] for k in fixture["register"]["keypoints"]]
     assert cats[0]["latent_dim"] == len(fixture["register"]["latent"])
+    assert cats[0]["grasp_available"] == h["grasp_available"] is True
 
 
 @needs_daemon
@@ -60,7 +63,9 @@ def test_register_answers_as_the_cli(client, fixture):
     assert r["keypoints"] == expected["keypoints"]
     assert r["scale"] == expected["scale"]
     assert r["fit"]["confident"] == expected["fit"]["confident"]
-    assert r["fit"]["stray_points"] == expected["fit"]["stray_points"]
+    for key in ("stray_points", "table_points", "coverage", "latent_mahalanobis", "contradicted_fraction"):
+        assert r["fit"][key] == expected["fit"][key], key
+    assert math.isclose(r["fit"]["view_width_mm"], expected["fit"]["view_width_mm"], rel_tol=1e-12)
     assert r["estimated_viewpoint"] == expected["estimated_viewpoint"]
     assert abs(r["fit"]["yaw_half_width_rad"] - expected["yaw_arc"]["half_width_rad"]) < 1e-6
     arc = gc.yaw_arc(r)

@@ -251,7 +251,11 @@ fn run(cli: &Cli) -> Result<(), Failure> {
                     "{} (pid {}, graspd {}, protocol {}, {} waiting, {} workers), up {:.1} s, started in {:.0} ms, {} categories, max {} points, grasp {}",
                     if h.serving { "SERVING" } else { "DRAINING" },
                     h.pid, h.server_version, h.protocol_version, h.waiting, h.workers, h.uptime_s, h.startup_ms, h.categories, h.max_points,
-                    if h.grasp_available { "available" } else { "not available" }
+                    match (&h.hand_name, h.grasp_available) {
+                        (Some(hand), true) => format!("available ({hand}, {} actuated joints)", h.hand_actuated_joints),
+                        (Some(hand), false) => format!("not available ({hand} loaded, no demonstration)"),
+                        (None, _) => "not available (no hand)".to_owned(),
+                    }
                 )
             });
         }
@@ -260,7 +264,13 @@ fn run(cli: &Cli) -> Result<(), Failure> {
             let cats = c.categories()?;
             print(cli.json, &serde_json::json!({"categories": cats}), || {
                 for k in &cats {
-                    println!("{}: latent {}, keypoints {}", k.name, k.latent_dim, k.keypoints.join(", "));
+                    println!(
+                        "{}: latent {}, keypoints {}, grasp {}",
+                        k.name,
+                        k.latent_dim,
+                        k.keypoints.join(", "),
+                        if k.grasp_available { "served" } else { "not served" }
+                    );
                 }
             });
         }
@@ -672,6 +682,11 @@ fn registration_cli_json(r: &graspd_client::Registration, up: Option<[f32; 3]>) 
             "ambiguous_pose": r.fit.ambiguous_pose,
             "stray_fraction": if r.points > 0 { f64::from(r.fit.stray_points) / f64::from(r.points) } else { 0.0 },
             "stray_points": r.fit.stray_points,
+            "table_points": r.fit.table_points,
+            "coverage": r.fit.coverage,
+            "view_width_mm": r.fit.view_width_m * 1e3,
+            "latent_mahalanobis": r.fit.latent_mahalanobis,
+            "contradicted_fraction": r.fit.contradicted_fraction,
         },
         "keypoints": r.keypoints,
         "cloud_frame": r.cloud_frame,

@@ -452,6 +452,10 @@ impl Shared {
         r.workers = self.max_running as u32;
         r.grasp_available = self.engine.grasp_available() as u32;
         r.server_version = proto::str_to_text(env!("CARGO_PKG_VERSION"));
+        if let Some((name, actuated)) = self.engine.hand() {
+            r.hand_name = proto::str_to_text(name);
+            r.hand_actuated_joints = actuated as u32;
+        }
         r
     }
 

@@ -153,10 +153,16 @@ impl Engine {
                 (Err(e), None) => tracing::warn!("Grasp will not be served for {name}: {e}"),
                 (Ok(_), _) => {}
             }
+            info.grasp_available = (hand.is_ok() && grasp.is_ok()) as u32;
             times.push((name.clone(), 1e3 * t0.elapsed().as_secs_f64()));
             categories.push(LoadedCategory { category, registrar, info, grasp });
         }
         Ok((Engine { categories, hand, actuated_names, joint_names }, times))
+    }
+
+    /// The hand Grasp solves for: its name and actuated joints (None when it did not load).
+    pub fn hand(&self) -> Option<(&str, usize)> {
+        self.hand.as_ref().ok().map(|h| (h.name(), h.num_actuated()))
     }
 
     /// Whether any category is served by Grasp.
@@ -410,6 +416,11 @@ pub fn registration_to_wire(
     r.confident = reg.fit.confident as u32;
     r.ambiguous_pose = reg.fit.ambiguous_pose as u32;
     r.stray_points = reg.fit.stray_points.min(u32::MAX as usize) as u32;
+    r.table_points = reg.fit.table_points.min(u32::MAX as usize) as u32;
+    r.coverage = reg.fit.coverage;
+    r.view_width_m = reg.fit.view_width_mm * 1e-3;
+    r.latent_mahalanobis = reg.fit.latent_mahalanobis;
+    r.contradicted_fraction = reg.fit.contradicted_fraction.unwrap_or(-1.0);
     r.yaw_half_width_rad = reg.yaw_arc.map_or(-1.0, |a| a.half_width_rad as f32);
     r.points = points.min(u32::MAX as usize) as u32;
     (r.viewpoint_source, r.viewpoint_cloud_m) = match (given, reg.estimated_viewpoint) {
@@ -474,6 +485,11 @@ mod tests {
     }
 
     fn mug_view() -> Vec<proto::Point> {
+        mug_view_and_camera().0
+    }
+
+    /// A test mug's view and the camera's position (world frame).
+    fn mug_view_and_camera() -> (Vec<proto::Point>, [f32; 3]) {
         use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
         let mesh =
             crate::tools::family(Category::Mug).unwrap().into_iter().find(|i| i.split == Split::Test).unwrap().mesh;
@@ -484,7 +500,9 @@ mod tests {
         let cam =
             DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: pose, noise: DepthNoise::default() };
         let view = cam.capture(&scene, 1).unwrap();
-        view.points_world.iter().map(|p| proto::Point([p.x as f32, p.y as f32, p.z as f32])).collect()
+        let points = view.points_world.iter().map(|p| proto::Point([p.x as f32, p.y as f32, p.z as f32])).collect();
+        let c = pose.translation.vector;
+        (points, [c.x as f32, c.y as f32, c.z as f32])
     }
 
     /// The built-in shape spaces' cache (assets/spaces).
@@ -528,6 +546,34 @@ mod tests {
         }
     }
 
+    /// The wire carries the fit's verdicts as `graspd register --json` gives
+    /// them (in metres where the CLI says mm); a fit with no camera position
+    /// has no contradicted fraction (−1), one with a camera has one.
+    #[test]
+    fn the_wire_carries_every_verdict_of_the_fit() {
+        let (engine, _) = Engine::load(&["mug".to_string()], &bundled_spaces(), &GraspSources::default()).unwrap();
+        let (cloud, camera) = mug_view_and_camera();
+        let mut h = grasp_header();
+        h.flags = proto::flags::VIEWPOINT;
+        h.viewpoint_in_cloud_m = camera;
+        let c = &engine.categories[0];
+        let points = convert_cloud(&cloud).unwrap();
+        let direct = c.registrar.register(&points, &register_options(&h).unwrap()).unwrap();
+        let wire = engine.register(0, &cloud, &h).unwrap().registration;
+        assert_eq!(wire.coverage, direct.fit.coverage);
+        assert_eq!(wire.latent_mahalanobis, direct.fit.latent_mahalanobis);
+        assert_eq!(wire.view_width_m, direct.fit.view_width_mm * 1e-3);
+        assert_eq!(wire.table_points as usize, direct.fit.table_points);
+        assert_eq!(Some(wire.contradicted_fraction), direct.fit.contradicted_fraction.or(Some(-1.0)));
+        assert!(wire.coverage > 0.2 && wire.view_width_m > 0.03, "a mug view: {wire:?}");
+        assert!((0.0..0.06).contains(&wire.contradicted_fraction), "a right fit, the camera given: {wire:?}");
+        // No camera given and none estimated (no up direction): nothing to contradict.
+        (h.flags, h.up_in_cloud) = (0, [0.0; 3]);
+        let direct = c.registrar.register(&points, &register_options(&h).unwrap()).unwrap();
+        let wire = engine.register(0, &cloud, &h).unwrap().registration;
+        assert_eq!((direct.fit.contradicted_fraction, wire.contradicted_fraction), (None, -1.0));
+    }
+
     /// A hand and demonstration named by the configuration are the ones
     /// Grasp solves for: the bundled hand under other names gives the same
     /// grasp, named as the configured hand names its joints.
@@ -538,7 +584,8 @@ mod tests {
         let names = vec!["mug".to_string()];
         let (bundled, _) = Engine::load(&names, &cache, &GraspSources::default()).unwrap();
         let (renamed, _) = Engine::load(&names, &cache, &renamed_hand(dir.path(), true)).unwrap();
-        assert_eq!(renamed.hand.as_ref().unwrap().name(), "sih_renamed");
+        assert_eq!(renamed.hand(), Some(("sih_renamed", 5)));
+        assert_eq!(renamed.categories[0].info.grasp_available, 1);
         let (cloud, h) = (mug_view(), grasp_header());
         let a = bundled.grasp(0, &cloud, &h).unwrap();
         let b = renamed.grasp(0, &cloud, &h).unwrap();
@@ -563,6 +610,10 @@ mod tests {
         let (engine, _) = Engine::load(&names, &cache, &renamed_hand(dir.path(), false)).unwrap();
         let (cloud, h) = (mug_view(), grasp_header());
         assert!(engine.register(0, &cloud, &h).is_ok());
+        // ListCategories says so; Health still names the hand that loaded.
+        assert_eq!(engine.categories[0].info.grasp_available, 0);
+        assert!(!engine.grasp_available());
+        assert_eq!(engine.hand().map(|(name, _)| name), Some("sih_renamed"));
         let e = engine.grasp(0, &cloud, &h).unwrap_err();
         assert_eq!(e.code, StatusCode::FailedPrecondition);
         assert!(e.message.contains("made with hand `sih_right`, not `sih_renamed`"), "{}", e.message);
