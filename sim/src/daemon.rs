@@ -15,7 +15,7 @@
 
 use std::time::{Duration, Instant};
 
-use graspd::grasp::transfer::{solve_transferred, Similarity, TransferredTool};
+use graspd::grasp::transfer::{is_z_up, solve_transferred, Similarity, TransferredTool};
 use graspd::grasp::{Grasp, GraspSolver, PreGraspOptions, SolveOptions};
 use graspd::hand::HandModel;
 use graspd::service::engine::GraspAssets;
@@ -273,9 +273,8 @@ impl EngineBackend {
         // What the daemon makes of the request's header (`engine::register_options`):
         // a given table in a z-up frame is also the registration's support.
         let up = opts.up.map(|u| u.map(f64::from));
-        let z_up = up.is_some_and(|[x, y, z]| z > 0.0 && x * x + y * y <= 1e-18 * z * z);
         let support_height = match opts.table {
-            Some(Table::At(z)) if z_up => Some(z as f64),
+            Some(Table::At(z)) if is_z_up(up) => Some(z as f64),
             _ => None,
         };
         let register = RegisterOptions {

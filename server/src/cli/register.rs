@@ -1,6 +1,7 @@
 use super::space::spaces_dir;
 use super::{print_json, CliResult};
 use clap::Args;
+use graspd::grasp::transfer::is_z_up;
 use graspd::shape::{builtin, RegisterOptions, Registrar};
 use graspd::tools::Category;
 use std::path::PathBuf;
@@ -60,9 +61,10 @@ pub fn support_height(up: Option<[f64; 3]>, table_z: Option<f64>) -> Result<Opti
     if !z.is_finite() {
         return Err(format!("--table-z {z} is not finite"));
     }
-    match up {
-        Some([x, y, uz]) if uz > 0.0 && x * x + y * y <= 1e-18 * uz * uz => Ok(Some(z)),
-        _ => Err("--table-z needs a z-up cloud frame (--up 0,0,1)".to_owned()),
+    if is_z_up(up) {
+        Ok(Some(z))
+    } else {
+        Err("--table-z needs a z-up cloud frame (--up 0,0,1)".to_owned())
     }
 }
 

@@ -378,9 +378,8 @@ pub fn register_options(h: &proto::RequestHeader) -> Result<RegisterOptions, Sta
     };
     // A table given in a z-up frame is the plane the tool rests on: the
     // registration holds the tool's lowest point on it (`support_height`).
-    let z_up = up.is_some_and(|[x, y, z]| z > 0.0 && x * x + y * y <= 1e-18 * z * z);
     let support_height = match h.table_mode {
-        proto::table_mode::GIVEN if z_up => {
+        proto::table_mode::GIVEN if is_z_up(up) => {
             if !h.table_z_m.is_finite() {
                 return Err(Status::invalid(format!("table_z_m {} is not finite", h.table_z_m)));
             }
@@ -466,8 +465,12 @@ mod tests {
         assert_eq!(register_options(&h).unwrap().support_height, None, "AUTO: the cloud's lowest point is no support");
         h.table_mode = proto::table_mode::GIVEN;
         assert_eq!(register_options(&h).unwrap().support_height, Some(0.75));
+        h.up_in_cloud = [3e-7, 0.0, 1.0];
+        assert_eq!(register_options(&h).unwrap().support_height, Some(0.75), "+z to an f32 extrinsic's rounding");
         h.up_in_cloud = [0.0, 1.0, 0.0];
         assert_eq!(register_options(&h).unwrap().support_height, None, "the plane z = 0.75 is not across this up");
+        h.up_in_cloud = [0.0, 0.02, 1.0];
+        assert_eq!(register_options(&h).unwrap().support_height, None, "1° off z: not a plane z = const");
         h.up_in_cloud = [0.0, 0.0, 1.0];
         h.table_z_m = f32::NAN;
         assert_eq!(register_options(&h).unwrap_err().code, StatusCode::InvalidArgument);
