@@ -138,12 +138,28 @@ fn band(centre: usize, half: usize) -> u64 {
     run.rotate_left(((centre + BINS - half % BINS) % BINS) as u32)
 }
 
+/// Where the counts (one per turn) say the shape belongs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) struct Narrowed {
+    /// First and last index of the run of turns within the slack of the
+    /// least count.
+    pub first: usize,
+    pub last: usize,
+    /// No turn outside the run is within the slack: the counts name one
+    /// run, not the nearest of several.
+    pub alone: bool,
+    /// The least count: points the shape leaves unexplained at its best turns.
+    pub least: usize,
+    /// The least count plus the slack: a turn whose count exceeds it
+    /// leaves points unexplained that the run explains.
+    pub bar: usize,
+}
+
 /// Where the counts (one per turn, `zero` the index of no turn) say the
 /// shape belongs: None when no turn is needed (the fit's own turn leaves
-/// within the slack of the fewest points unexplained); else the first and
-/// last index of the run of turns within the slack around the least count
-/// nearest `zero`.
-pub(super) fn narrowed(counts: &[usize], zero: usize, view_points: usize) -> Option<(usize, usize)> {
+/// within the slack of the fewest points unexplained); else the run of
+/// turns within the slack around the least count nearest `zero`.
+pub(super) fn narrowed(counts: &[usize], zero: usize, view_points: usize) -> Option<Narrowed> {
     let least = *counts.iter().min()?;
     let slack = ((SLACK_SHARE * view_points as f64) as usize).max(MIN_SLACK);
     let kept = |i: usize| counts[i] <= least + slack;
@@ -158,7 +174,8 @@ pub(super) fn narrowed(counts: &[usize], zero: usize, view_points: usize) -> Opt
     while b + 1 < counts.len() && kept(b + 1) {
         b += 1;
     }
-    Some((a, b))
+    let alone = (0..counts.len()).all(|i| (a..=b).contains(&i) || !kept(i));
+    Some(Narrowed { first: a, last: b, alone, least, bar: least + slack })
 }
 
 #[cfg(test)]
@@ -192,11 +209,24 @@ mod tests {
         assert_eq!(counts[16], 10, "{counts:?}");
         assert_eq!(counts[16 + 8], 0, "{counts:?}");
         assert!(counts.iter().all(|&c| c <= 10), "{counts:?}");
-        let (a, b) = narrowed(&counts, 16, view.len()).expect("a turn is needed");
-        assert!(a <= 16 + 8 && 16 + 8 <= b && b - a <= 6, "{a}..{b} of {counts:?}");
+        let n = narrowed(&counts, 16, view.len()).expect("a turn is needed");
+        let (a, b) = (n.first, n.last);
+        assert!(a <= 16 + 8 && 16 + 8 <= b && b - a <= 6 && n.alone, "{n:?} of {counts:?}");
         // The view the shape already explains asks for no turn.
         let counts = masks.unexplained(&mug_like(0.0), -16..=16);
         assert_eq!(narrowed(&counts, 16, view.len()), None, "{counts:?}");
+    }
+
+    /// Two runs of turns explain the view as well: the nearer is taken, and
+    /// said not to be alone.
+    #[test]
+    fn of_two_runs_the_nearer_is_taken_and_not_alone() {
+        let mut counts = vec![20; 33];
+        (counts[20], counts[21], counts[5]) = (0, 1, 0);
+        let n = narrowed(&counts, 16, 1000).unwrap();
+        assert_eq!(n, Narrowed { first: 20, last: 21, alone: false, least: 0, bar: 3 });
+        counts[5] = 20;
+        assert!(narrowed(&counts, 16, 1000).unwrap().alone);
     }
 
     #[test]
