@@ -5,10 +5,11 @@
 //! YAW X Y CAPTURE_SEED REGISTER_SEED [REGISTER_OPTIONS_JSON]`, the JSON
 //! laid over the default options.
 //! Upright tools, scale 1, the camera's position known (the eval's defaults).
-use graspd::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
+use graspd::eval::transfer::Placement;
+use graspd::geometry::camera::DepthNoise;
 use graspd::shape::{builtin, RegisterOptions, Registrar};
 use graspd::tools::{self, Category};
-use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::Point3;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let a: Vec<String> = std::env::args().skip(1).collect();
@@ -33,19 +34,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/spaces");
     let registrar = Registrar::new(builtin::load_or_build(category, &root, |_, _| {})?);
     let inst = tools::instance(category, &a[1])?;
-    let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw);
-    let zmin = inst.mesh.vertices.iter().map(|p| (rot * p).z).fold(f64::INFINITY, f64::min);
-    let pose = Isometry3::from_parts(Translation3::new(x, y, -zmin), rot);
-    let (lo, hi) = inst.mesh.aabb().ok_or("empty mesh")?;
-    let centre = pose * Point3::from((lo.coords + hi.coords) / 2.0);
-    let intrinsics = Intrinsics::default();
-    let world_from_camera = standard_view(view, views, centre, inst.mesh.diagonal(), intrinsics)?;
-    let cam = DepthCamera { intrinsics, world_from_camera, noise: DepthNoise::default() };
-    let scene = Scene::new(&inst.mesh, pose, Some(0.0))?;
-    let cloud = cam.capture(&scene, capture_seed)?.points_world;
-    let v = world_from_camera.translation.vector;
+    let placed = Placement::upright(yaw, [x, y])
+        .place(&inst.mesh, view, views, DepthNoise::default())
+        .ok_or("the view cannot be placed")?;
+    let cloud = placed.capture(capture_seed).ok_or("the camera sees nothing")?;
+    let (pose, rot) = (placed.world_from_tool, placed.world_from_tool.rotation);
     let opts =
-        RegisterOptions { seed: register_seed, viewpoint: Some([v.x, v.y, v.z]), support_height: Some(0.0), ..base };
+        RegisterOptions { seed: register_seed, viewpoint: Some(placed.viewpoint()), support_height: Some(0.0), ..base };
     let r = registrar.register(&cloud, &opts)?;
     let rot_err = (r.rotation_cloud_from_canonical * rot.inverse()).angle().to_degrees();
     let kp_err: Vec<f64> = r

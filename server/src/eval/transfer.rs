@@ -393,6 +393,85 @@ fn viewpoint_errors(trials: &[Trial]) -> Option<ViewpointErrors> {
     })
 }
 
+/// Where a trial puts the tool and its camera, as `GRASPD_EVAL_TRACE`
+/// prints it under "to reproduce": enough to render the same view again
+/// (`examples/repro_view.rs`, the tests of views the eval found).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Placement {
+    /// Turn about the world's z, radians.
+    pub yaw: f64,
+    /// Uniform scale of the instance's mesh.
+    pub scale: f64,
+    /// The tool's origin on the table (x, y), metres.
+    pub at: [f64; 2],
+    /// Lying on its side: turned a quarter about x before the yaw.
+    pub on_side: bool,
+}
+
+/// A tool placed on the table (z = 0) and the camera of one of the eval's views.
+pub struct PlacedView {
+    /// The instance's mesh at the placement's scale, in the tool's frame.
+    pub mesh: crate::geometry::TriMesh,
+    pub world_from_tool: Isometry3<f64>,
+    pub camera: DepthCamera,
+}
+
+impl Placement {
+    /// An upright tool at scale 1.
+    pub fn upright(yaw: f64, at: [f64; 2]) -> Self {
+        Self { yaw, scale: 1.0, at, on_side: false }
+    }
+
+    /// The rotation of the tool's frame into the world's.
+    pub fn rotation(&self) -> UnitQuaternion<f64> {
+        let base = if self.on_side {
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_2)
+        } else {
+            UnitQuaternion::identity()
+        };
+        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), self.yaw) * base
+    }
+
+    /// `mesh` placed, its lowest point on the table, and the camera of view
+    /// `view` of `views` (`standard_view` round the placed mesh's box).
+    pub fn place(
+        &self,
+        mesh: &crate::geometry::TriMesh,
+        view: usize,
+        views: usize,
+        noise: DepthNoise,
+    ) -> Option<PlacedView> {
+        let mut mesh = mesh.clone();
+        let scale = self.scale;
+        mesh.map_vertices(|p| Point3::from(p.coords * scale));
+        let rot = self.rotation();
+        let zmin = mesh.vertices.iter().map(|p| (rot * p).z).fold(f64::INFINITY, f64::min);
+        let world_from_tool = Isometry3::from_parts(Translation3::new(self.at[0], self.at[1], -zmin), rot);
+        let centre = world_from_tool * Point3::from(mesh.aabb().map(|(lo, hi)| (lo.coords + hi.coords) / 2.0)?);
+        let intrinsics = Intrinsics::default();
+        let world_from_camera = standard_view(view, views, centre, mesh.diagonal(), intrinsics).ok()?;
+        Some(PlacedView { mesh, world_from_tool, camera: DepthCamera { intrinsics, world_from_camera, noise } })
+    }
+}
+
+impl PlacedView {
+    /// The scene the camera sees: the placed tool on the table.
+    pub fn scene(&self) -> Option<Scene> {
+        Scene::new(&self.mesh, self.world_from_tool, Some(0.0)).ok()
+    }
+
+    /// The camera's segmented view of the tool (world frame).
+    pub fn capture(&self, seed: u64) -> Option<Vec<Point3<f64>>> {
+        Some(self.camera.capture(&self.scene()?, seed).ok()?.points_world)
+    }
+
+    /// The camera's position (world frame), as the registration is told it.
+    pub fn viewpoint(&self) -> [f64; 3] {
+        let v = self.camera.world_from_camera.translation.vector;
+        [v.x, v.y, v.z]
+    }
+}
+
 fn trial(
     registrar: &Registrar,
     inst: &Instance,
@@ -406,18 +485,11 @@ fn trial(
     // Place the tool: random yaw and position on the table, optional scale and side rest.
     let scale = 1.0 + opts.scale_jitter * (2.0 * rng.random::<f64>() - 1.0);
     let yaw = rng.random::<f64>() * std::f64::consts::TAU;
-    let base = if opts.on_side {
-        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_2)
-    } else {
-        UnitQuaternion::identity()
-    };
-    let mut mesh = inst.mesh.clone();
-    mesh.map_vertices(|p| Point3::from(p.coords * scale));
-    let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw) * base;
-    // Rest on the table: lowest point at z = 0 after rotation.
-    let zmin = mesh.vertices.iter().map(|p| (rot * p).z).fold(f64::INFINITY, f64::min);
-    let offset = Vector3::new(0.2 * (rng.random::<f64>() - 0.5), 0.2 * (rng.random::<f64>() - 0.5), -zmin);
-    let world_from_tool = Isometry3::from_parts(Translation3::from(offset), rot);
+    let at = [0.2 * (rng.random::<f64>() - 0.5), 0.2 * (rng.random::<f64>() - 0.5)];
+    let placement = Placement { yaw, scale, at, on_side: opts.on_side };
+    let placed = placement.place(&inst.mesh, view, opts.views, opts.noise)?;
+    let (mesh, world_from_tool, cam) = (&placed.mesh, placed.world_from_tool, &placed.camera);
+    let rot = world_from_tool.rotation;
     let pose_pt = |p: &P3| -> P3 {
         let q = world_from_tool * Point3::from(Vector3::from(*p) * scale);
         [q.x, q.y, q.z]
@@ -425,14 +497,10 @@ fn trial(
     let truth_kp: Vec<P3> = inst.keypoints.iter().map(|k| pose_pt(&k.position)).collect();
     let truth_world: Vec<P3> = truth_surface.iter().map(pose_pt).collect();
 
-    let mut scene = Scene::new(&mesh, world_from_tool, Some(0.0)).ok()?;
-    let centre = world_from_tool * Point3::from(mesh.aabb().map(|(lo, hi)| (lo.coords + hi.coords) / 2.0)?);
-    let intrinsics = Intrinsics::default();
-    let cam_pose = standard_view(view, opts.views, centre, mesh.diagonal(), intrinsics).ok()?;
-    let cam = DepthCamera { intrinsics, world_from_camera: cam_pose, noise: opts.noise };
+    let mut scene = placed.scene()?;
     let capture_seed: u64 = rng.random();
     let mut cloud = if opts.full_surface {
-        sample_points(&mesh, 3000, capture_seed).ok()?.into_iter().map(|p| world_from_tool * p).collect()
+        sample_points(mesh, 3000, capture_seed).ok()?.into_iter().map(|p| world_from_tool * p).collect()
     } else {
         cam.capture(&scene, capture_seed).ok()?.points_world
     };
@@ -443,7 +511,7 @@ fn trial(
     // What the view itself leaves open: turns of the upright true tool about
     // its own vertical axis that the camera cannot see.
     let unseen = (!opts.on_side && !opts.full_surface)
-        .then(|| ambiguity::unseen_turns(&cam, &mut scene, world_from_tool))
+        .then(|| ambiguity::unseen_turns(cam, &mut scene, world_from_tool))
         .flatten()
         .map(|arc| {
             let axis = world_from_tool.translation.vector;
@@ -461,13 +529,13 @@ fn trial(
             r.to_degrees(),
             p.to_degrees(),
             y.to_degrees(),
-            offset.x,
-            offset.y,
+            at[0],
+            at[1],
         );
     }
     let t0 = Instant::now();
-    let t_cam = cam_pose.translation.vector;
-    let viewpoint = (opts.known_viewpoint && !opts.full_surface).then_some([t_cam.x, t_cam.y, t_cam.z]);
+    let (cam_pose, t_cam) = (cam.world_from_camera, cam.world_from_camera.translation.vector);
+    let viewpoint = (opts.known_viewpoint && !opts.full_surface).then_some(placed.viewpoint());
     let support_height = opts.known_table.then_some(0.0).or(opts.register.support_height);
     let reg = registrar
         .register(&cloud, &RegisterOptions { seed: register_seed, viewpoint, support_height, ..opts.register })

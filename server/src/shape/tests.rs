@@ -7,6 +7,7 @@ use super::cpd::{self, EmOptions, RigidOptions};
 use super::register::RegisterError;
 use super::space::ShapeSpace;
 use super::{RegisterOptions, Registrar};
+use crate::eval::transfer::Placement;
 use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
 use crate::geometry::sample_points;
 use crate::tools::{self, Category, Split};
@@ -599,18 +600,11 @@ type EvalView = (&'static str, usize, f64, [f64; 2], u64, u64);
 fn mug_eval_view_rotation_error(view: &EvalView, opts: RegisterOptions) -> (f64, bool) {
     let &(name, view, yaw, at, capture_seed, seed) = view;
     let inst = tools::instance(Category::Mug, name).unwrap();
-    let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw);
-    let zmin = inst.mesh.vertices.iter().map(|p| (rot * p).z).fold(f64::INFINITY, f64::min);
-    let pose = Isometry3::from_parts(Translation3::new(at[0], at[1], -zmin), rot);
-    let centre = pose * Point3::from(inst.mesh.aabb().map(|(lo, hi)| (lo.coords + hi.coords) / 2.0).unwrap());
-    let intrinsics = Intrinsics::default();
-    let world_from_camera = standard_view(view, 12, centre, inst.mesh.diagonal(), intrinsics).unwrap();
-    let cam = DepthCamera { intrinsics, world_from_camera, noise: DepthNoise::default() };
-    let scene = Scene::new(&inst.mesh, pose, Some(0.0)).unwrap();
-    let cloud = cam.capture(&scene, capture_seed).unwrap().points_world;
-    let v = world_from_camera.translation.vector;
-    let opts = RegisterOptions { seed, viewpoint: Some([v.x, v.y, v.z]), support_height: Some(0.0), ..opts };
+    let placed = Placement::upright(yaw, at).place(&inst.mesh, view, 12, DepthNoise::default()).unwrap();
+    let cloud = placed.capture(capture_seed).unwrap();
+    let opts = RegisterOptions { seed, viewpoint: Some(placed.viewpoint()), support_height: Some(0.0), ..opts };
     let r = mug_registrar().register(&cloud, &opts).unwrap();
+    let rot = placed.world_from_tool.rotation;
     ((r.rotation_cloud_from_canonical * rot.inverse()).angle().to_degrees(), r.fit.ambiguous_pose)
 }
 
