@@ -88,6 +88,14 @@ impl TaskSetup {
         }
     }
 
+    pub fn base_mut(&mut self) -> &mut LiftSetup {
+        match self {
+            Self::Place(s) => &mut s.base,
+            Self::Position(s) => &mut s.base,
+            Self::Nail(s) => &mut s.base,
+        }
+    }
+
     fn validate(&self) -> Result<(), SimError> {
         match self {
             Self::Place(s) => s.ranges.validate(),

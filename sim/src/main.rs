@@ -174,7 +174,8 @@ struct GraspArgs {
     #[arg(long, default_value_t = 0.0)]
     camera_occluder_share: f64,
     /// URDF of another hand than the bundled SIH-like one (with
-    /// --hand-keypoints; its servos take the bundled hand's gains).
+    /// --hand-keypoints; its servos take the bundled hand's gains unless
+    /// --kp / --force-limit say otherwise).
     #[arg(long, requires = "hand_keypoints")]
     hand_urdf: Option<std::path::PathBuf>,
     /// The keypoints file of the --hand-urdf hand.
@@ -184,9 +185,28 @@ struct GraspArgs {
     /// made with the bundled hand; another hand needs its own).
     #[arg(long)]
     demo: Option<std::path::PathBuf>,
+    /// Finger servo stiffness, N·m/rad (default: 4, tuned on the bundled
+    /// hand; another hand's fingers may want their own).
+    #[arg(long)]
+    kp: Option<f64>,
+    /// Finger servo torque limit, N·m (default: 2).
+    #[arg(long)]
+    force_limit: Option<f64>,
 }
 
 impl GraspArgs {
+    /// The finger servos' gains, the defaults with --kp / --force-limit laid over them.
+    fn servo(&self, hand: &mut graspd_sim::hand::HandMjcfOptions) -> Result<(), String> {
+        for (flag, v) in [("--kp", self.kp), ("--force-limit", self.force_limit)] {
+            if v.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
+                return Err(format!("{flag} {}: must be a positive number", v.unwrap_or_default()));
+            }
+        }
+        hand.kp = self.kp.unwrap_or(hand.kp);
+        hand.force_limit = self.force_limit.unwrap_or(hand.force_limit);
+        Ok(())
+    }
+
     /// The hand of the episodes: --hand-urdf and --hand-keypoints, else the bundled one.
     fn hand_asset(&self) -> Result<graspd_sim::hand::HandAsset, Box<dyn std::error::Error>> {
         Ok(match (&self.hand_urdf, &self.hand_keypoints) {
@@ -572,6 +592,8 @@ fn run_pose_task(a: PoseTaskArgs, task: PoseTask) -> Result<(), Box<dyn std::err
     let mut planner = make_planner(&asset, category, a.seed, &a.grasp)?;
     let mut place = PlaceSetup::default();
     let mut position = DrillSetup::default();
+    a.grasp.servo(&mut place.base.hand)?;
+    a.grasp.servo(&mut position.base.hand)?;
     if let Some(n) = a.noslip_iterations {
         place.base.physics.noslip_iterations = n;
         position.base.physics.noslip_iterations = n;
@@ -615,7 +637,12 @@ fn run_pose_task(a: PoseTaskArgs, task: PoseTask) -> Result<(), Box<dyn std::err
         );
         report.add(inst, &outs, |o| o.success, |o| &o.grasp, errors);
     }
-    report.print(a.json, task_name, category, &asset, &planner, serde_json::json!({ "ranges": ranges }))
+    let servo = match task {
+        PoseTask::PlaceMug => &place.base.hand,
+        PoseTask::PositionDrill => &position.base.hand,
+    };
+    let servo = serde_json::json!({ "kp": servo.kp, "force_limit": servo.force_limit });
+    report.print(a.json, task_name, category, &asset, &planner, serde_json::json!({ "ranges": ranges, "servo": servo }))
 }
 
 fn run_nail(a: NailArgs) -> Result<(), Box<dyn std::error::Error>> {
@@ -630,6 +657,7 @@ fn run_nail(a: NailArgs) -> Result<(), Box<dyn std::error::Error>> {
     let asset = a.grasp.hand_asset()?;
     let mut planner = make_planner(&asset, category, a.seed, &a.grasp)?;
     let mut setup = NailSetup::default();
+    a.grasp.servo(&mut setup.base.hand)?;
     if let Some(n) = a.noslip_iterations {
         setup.base.physics.noslip_iterations = n;
     }
@@ -681,7 +709,8 @@ fn run_nail(a: NailArgs) -> Result<(), Box<dyn std::error::Error>> {
         report.add(inst, &outs, |o| o.success, |o| &o.grasp, errors);
     }
     // The goal segment of the observation layout is the nail's head.
-    let extra = serde_json::json!({ "ranges": setup.ranges, "fixture": setup.fixture });
+    let servo = serde_json::json!({ "kp": setup.base.hand.kp, "force_limit": setup.base.hand.force_limit });
+    let extra = serde_json::json!({ "ranges": setup.ranges, "fixture": setup.fixture, "servo": servo });
     report.print(a.json, "drive_nail", category, &asset, &planner, extra)
 }
 
@@ -873,7 +902,9 @@ fn run_rollout(a: RolloutArgs) -> Result<(), Box<dyn std::error::Error>> {
     let planner = make_planner(&asset, category, a.seed, &a.grasp)?;
     let threads = a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let t_build = Instant::now();
-    let mut envs = VecTaskEnv::new(&asset, planner, &instances, EnvSetup::new(task), a.envs, threads, a.seed)?;
+    let mut setup = EnvSetup::new(task);
+    a.grasp.servo(&mut setup.task.base_mut().hand)?;
+    let mut envs = VecTaskEnv::new(&asset, planner, &instances, setup, a.envs, threads, a.seed)?;
     let build_s = t_build.elapsed().as_secs_f64();
     let n = envs.len();
     let width = envs.action_layout().len();

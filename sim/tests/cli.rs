@@ -212,3 +212,29 @@ fn a_task_runs_with_another_hand_and_its_demonstration() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("made with hand `sih_right`, not `sih_renamed`") && err.contains("--demo"), "{err}");
 }
+
+/// A task's finger servos take `--kp` / `--force-limit` (another hand's
+/// fingers may want their own gains), the report says which, and a gain
+/// that is not a positive number is refused naming the flag.
+#[test]
+fn a_tasks_finger_servos_take_the_given_gains() {
+    let base = ["place", "--instances", "mug_canonical", "--episodes", "1", "--json"];
+    let returns = |v: &serde_json::Value| -> Vec<f64> {
+        v["results"][0]["episodes"].as_array().unwrap().iter().map(|e| e["episode_return"].as_f64().unwrap()).collect()
+    };
+    let bundled = sim(&base);
+    assert_eq!((bundled["servo"]["kp"].as_f64(), bundled["servo"]["force_limit"].as_f64()), (Some(4.0), Some(2.0)));
+    // Servos too weak to hold the mug: another episode, and the report says why.
+    let weak = sim(&[&base[..], &["--kp", "0.5", "--force-limit", "0.2"]].concat());
+    assert_eq!((weak["servo"]["kp"].as_f64(), weak["servo"]["force_limit"].as_f64()), (Some(0.5), Some(0.2)));
+    assert_ne!(returns(&weak), returns(&bundled));
+    for (flag, value) in [("--kp", "-1"), ("--force-limit", "nan"), ("--kp", "0")] {
+        let out = Command::new(env!("CARGO_BIN_EXE_sim"))
+            .args(["nail", "--instances", "hammer_canonical", "--episodes", "1", &format!("{flag}={value}")])
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{flag} {value}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(flag) && err.contains("positive"), "{err}");
+    }
+}
