@@ -7,6 +7,8 @@
 //! (`graspd.v3.*`) so that clients in other languages can open the same
 //! services. README.md in this crate is the reference for each field, unit
 //! and frame; the layout tests at the bottom pin sizes and offsets.
+//! `include/graspd.h` declares the same types for C and C++;
+//! `tests/c_header.rs` holds it to these definitions field by field.
 //!
 //! Conventions: SI units (metres, radians, seconds / nanoseconds), right-handed
 //! frames, quaternions as (x, y, z, w), the frame of every pose in its field
@@ -370,7 +372,7 @@ pub struct HealthResponse {
     /// The daemon's version, e.g. "0.1.0".
     pub server_version: Name,
     /// The name of the hand Grasp solves for (its URDF robot name, e.g.
-    /// "sih_like_hand"); empty when no hand loaded.
+    /// "sih_right"); empty when no hand loaded.
     pub hand_name: Name,
 }
 
@@ -702,7 +704,8 @@ mod tests {
     use super::*;
     use core::mem::{align_of, offset_of, size_of};
 
-    /// The layout README.md documents; a change here is a protocol change.
+    /// The layout README.md documents; a change here is a protocol change,
+    /// and include/graspd.h changes with it (tests/c_header.rs).
     #[test]
     fn layouts_are_pinned() {
         assert_eq!((size_of::<RequestHeader>(), align_of::<RequestHeader>()), (144, 8));
