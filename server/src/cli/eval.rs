@@ -38,6 +38,11 @@ pub enum EvalCommand {
         /// Register whole-surface samples instead of camera views (diagnostic).
         #[arg(long)]
         full_surface: bool,
+        /// Merge each view with a second camera's, a quarter turn round the
+        /// tool and 25° up (a robot's second look); the registration is told
+        /// the first camera, or none with --unknown-viewpoint.
+        #[arg(long)]
+        second_view: bool,
         /// Do not tell the registration where the camera is.
         #[arg(long)]
         unknown_viewpoint: bool,
@@ -134,6 +139,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             scale_jitter,
             on_side,
             full_surface,
+            second_view,
             unknown_viewpoint,
             unknown_table,
             seed,
@@ -171,6 +177,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                 scale_jitter,
                 on_side,
                 full_surface,
+                second_view,
                 known_viewpoint: !unknown_viewpoint,
                 known_table: !unknown_table,
                 seed,
@@ -191,7 +198,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             let out = serde_json::json!({
                 "category": category.name(),
                 "views": views,
-                "noise_mm": noise_mm, "outliers": outliers, "mask_leak_px": mask_leak_px, "occluder_share": occluder_share, "scale_jitter": scale_jitter, "on_side": on_side, "full_surface": full_surface, "known_viewpoint": !unknown_viewpoint, "known_table": !unknown_table,
+                "noise_mm": noise_mm, "outliers": outliers, "mask_leak_px": mask_leak_px, "occluder_share": occluder_share, "scale_jitter": scale_jitter, "on_side": on_side, "full_surface": full_surface, "second_view": second_view, "known_viewpoint": !unknown_viewpoint, "known_table": !unknown_table,
                 "test": splits.iter().position(|s| *s == Split::Test).map(|i| &reports[i]),
                 "train": splits.iter().position(|s| *s == Split::Train).map(|i| &reports[i]),
             });

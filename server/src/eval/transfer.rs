@@ -43,6 +43,11 @@ pub struct TransferEvalOptions {
     /// Register samples of the whole surface instead of a camera view (a
     /// diagnostic: separates the shape space's error from the partial view's).
     pub full_surface: bool,
+    /// Merge each view with a second camera's, a quarter turn round the tool
+    /// and 25° up (a robot's second look). The registration takes one
+    /// camera position: with `known_viewpoint` it is told the first
+    /// camera's, without it none (what README.md advises for merged views).
+    pub second_view: bool,
     pub seed: u64,
     pub register: RegisterOptions,
     /// Tell the registration where the camera is (the known viewpoint of a real set-up).
@@ -65,6 +70,7 @@ impl Default for TransferEvalOptions {
             scale_jitter: 0.0,
             on_side: false,
             full_surface: false,
+            second_view: false,
             seed: 7,
             register: RegisterOptions::default(),
             known_viewpoint: true,
@@ -507,10 +513,15 @@ fn trial(
     if cloud.len() < 50 {
         return None;
     }
+    if opts.second_view && !opts.full_surface {
+        // Azimuth index 4·view + views of 4·views: a quarter turn on.
+        let second = placement.place(&inst.mesh, 4 * view + opts.views, 4 * opts.views, opts.noise)?;
+        cloud.extend(second.capture(rng.random())?);
+    }
     add_outliers(&mut cloud, opts.outliers, rng);
     // What the view itself leaves open: turns of the upright true tool about
     // its own vertical axis that the camera cannot see.
-    let unseen = (!opts.on_side && !opts.full_surface)
+    let unseen = (!opts.on_side && !opts.full_surface && !opts.second_view)
         .then(|| ambiguity::unseen_turns(cam, &mut scene, world_from_tool))
         .flatten()
         .map(|arc| {
@@ -535,6 +546,8 @@ fn trial(
     }
     let t0 = Instant::now();
     let (cam_pose, t_cam) = (cam.world_from_camera, cam.world_from_camera.translation.vector);
+    // With a second view, the first camera's (what a client that knows only
+    // one camera would say; `--unknown-viewpoint` to say nothing).
     let viewpoint = (opts.known_viewpoint && !opts.full_surface).then_some(placed.viewpoint());
     let support_height = opts.known_table.then_some(0.0).or(opts.register.support_height);
     let reg = registrar
