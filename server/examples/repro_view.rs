@@ -5,6 +5,8 @@
 //! YAW X Y CAPTURE_SEED REGISTER_SEED [REGISTER_OPTIONS_JSON]`, the JSON
 //! laid over the default options.
 //! Upright tools, scale 1, the camera's position known (the eval's defaults).
+//! `SECOND_VIEW_SEED=N`: merged with the second view of `--second-view`,
+//! captured with seed N (the trace's "second view's capture seed").
 use graspd::eval::transfer::Placement;
 use graspd::geometry::camera::DepthNoise;
 use graspd::shape::{builtin, RegisterOptions, Registrar};
@@ -37,7 +39,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let placed = Placement::upright(yaw, [x, y])
         .place(&inst.mesh, view, views, DepthNoise::default())
         .ok_or("the view cannot be placed")?;
-    let cloud = placed.capture(capture_seed).ok_or("the camera sees nothing")?;
+    let mut cloud = placed.capture(capture_seed).ok_or("the camera sees nothing")?;
+    if let Some(seed) = std::env::var("SECOND_VIEW_SEED").ok() {
+        let second = Placement::upright(yaw, [x, y])
+            .second_view(&inst.mesh, view, views, DepthNoise::default())
+            .ok_or("the second view cannot be placed")?;
+        cloud.extend(second.capture(seed.parse()?).ok_or("the second camera sees nothing")?);
+    }
     let (pose, rot) = (placed.world_from_tool, placed.world_from_tool.rotation);
     let opts =
         RegisterOptions { seed: register_seed, viewpoint: Some(placed.viewpoint()), support_height: Some(0.0), ..base };

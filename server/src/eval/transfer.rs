@@ -458,6 +458,19 @@ impl Placement {
         let world_from_camera = standard_view(view, views, centre, mesh.diagonal(), intrinsics).ok()?;
         Some(PlacedView { mesh, world_from_tool, camera: DepthCamera { intrinsics, world_from_camera, noise } })
     }
+
+    /// The second camera of `--second-view` for view `view` of `views`: a
+    /// quarter turn on round the tool (azimuth index 4·view + views of
+    /// 4·views), 25° up.
+    pub fn second_view(
+        &self,
+        mesh: &crate::geometry::TriMesh,
+        view: usize,
+        views: usize,
+        noise: DepthNoise,
+    ) -> Option<PlacedView> {
+        self.place(mesh, 4 * view + views, 4 * views, noise)
+    }
 }
 
 impl PlacedView {
@@ -513,10 +526,9 @@ fn trial(
     if cloud.len() < 50 {
         return None;
     }
-    if opts.second_view && !opts.full_surface {
-        // Azimuth index 4·view + views of 4·views: a quarter turn on.
-        let second = placement.place(&inst.mesh, 4 * view + opts.views, 4 * opts.views, opts.noise)?;
-        cloud.extend(second.capture(rng.random())?);
+    let second_capture_seed = (opts.second_view && !opts.full_surface).then(|| rng.random::<u64>());
+    if let Some(seed) = second_capture_seed {
+        cloud.extend(placement.second_view(&inst.mesh, view, opts.views, opts.noise)?.capture(seed)?);
     }
     add_outliers(&mut cloud, opts.outliers, rng);
     // What the view itself leaves open: turns of the upright true tool about
@@ -535,13 +547,14 @@ fn trial(
     if trace {
         let (r, p, y) = rot.euler_angles();
         eprintln!(
-            "{} view {view}: truth rpy {:.0} {:.0} {:.0}° (to reproduce: yaw {yaw} rad, scale {scale}, at [{}, {}], capture seed {capture_seed}, register seed {register_seed})",
+            "{} view {view}: truth rpy {:.0} {:.0} {:.0}° (to reproduce: yaw {yaw} rad, scale {scale}, at [{}, {}], capture seed {capture_seed}, register seed {register_seed}{})",
             inst.name,
             r.to_degrees(),
             p.to_degrees(),
             y.to_degrees(),
             at[0],
             at[1],
+            second_capture_seed.map(|s| format!(", second view's capture seed {s}")).unwrap_or_default(),
         );
     }
     let t0 = Instant::now();

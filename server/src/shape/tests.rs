@@ -633,8 +633,7 @@ fn a_second_view_settles_the_turn_a_view_hiding_the_handle_leaves_open() {
         let inst = tools::instance(Category::Mug, name).unwrap();
         let placement = Placement::upright(yaw, at);
         let first = placement.place(&inst.mesh, k, 12, DepthNoise::default()).unwrap();
-        // Azimuth index 4k + 12 of 48: a quarter turn on (as `--second-view`).
-        let second = placement.place(&inst.mesh, 4 * k + 12, 48, DepthNoise::default()).unwrap();
+        let second = placement.second_view(&inst.mesh, k, 12, DepthNoise::default()).unwrap();
         let mut cloud = first.capture(capture_seed).unwrap();
         cloud.extend(second.capture(capture_seed ^ 1).unwrap());
         let opts = RegisterOptions {
