@@ -479,7 +479,9 @@ pub struct Registration {
     /// a tool off its rest pose whose pose is the race's runner-up, fitted
     /// after the sweep: see README.md).
     /// The axis: the canonical axis nearest the request's up direction,
-    /// through `translation_cloud_from_canonical_m` (see README.md).
+    /// through `translation_cloud_from_canonical_m` (see README.md). The arc
+    /// spans turns near the reported pose only; with `ambiguous_pose` set,
+    /// another pose explains the view as well even where it reads 0.
     pub yaw_half_width_rad: f32,
     /// Of `stray_points`, those set aside as the table a leaking
     /// segmentation included (0 when no up direction or table is known).
