@@ -43,6 +43,11 @@ pub enum EvalCommand {
         /// the first camera, or none with --unknown-viewpoint.
         #[arg(long)]
         second_view: bool,
+        /// With --second-view: the second camera's calibration error, its
+        /// points moved by this many millimetres and turned by this many
+        /// degrees about their centroid (directions drawn per view).
+        #[arg(long, value_name = "MM,DEG", value_delimiter = ',')]
+        second_view_misalign: Option<Vec<f64>>,
         /// Do not tell the registration where the camera is.
         #[arg(long)]
         unknown_viewpoint: bool,
@@ -140,6 +145,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             on_side,
             full_surface,
             second_view,
+            second_view_misalign,
             unknown_viewpoint,
             unknown_table,
             seed,
@@ -148,6 +154,14 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             space,
             json,
         } => {
+            let second_view_misalign = match second_view_misalign.as_deref() {
+                None => [0.0; 2],
+                Some(&[mm, deg]) if second_view && mm.is_finite() && deg.is_finite() && mm >= 0.0 && deg >= 0.0 => {
+                    [mm * 1e-3, deg.to_radians()]
+                }
+                Some(_) if !second_view => return Err("--second-view-misalign needs --second-view".into()),
+                Some(v) => return Err(format!("--second-view-misalign {v:?}: two non-negative numbers, MM,DEG").into()),
+            };
             if !(0.0..1.0).contains(&occluder_share) {
                 return Err(format!("--occluder-share {occluder_share}: from 0 up to 1").into());
             }
@@ -178,6 +192,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                 on_side,
                 full_surface,
                 second_view,
+                second_view_misalign,
                 known_viewpoint: !unknown_viewpoint,
                 known_table: !unknown_table,
                 seed,
@@ -198,7 +213,7 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             let out = serde_json::json!({
                 "category": category.name(),
                 "views": views,
-                "noise_mm": noise_mm, "outliers": outliers, "mask_leak_px": mask_leak_px, "occluder_share": occluder_share, "scale_jitter": scale_jitter, "on_side": on_side, "full_surface": full_surface, "second_view": second_view, "known_viewpoint": !unknown_viewpoint, "known_table": !unknown_table,
+                "noise_mm": noise_mm, "outliers": outliers, "mask_leak_px": mask_leak_px, "occluder_share": occluder_share, "scale_jitter": scale_jitter, "on_side": on_side, "full_surface": full_surface, "second_view": second_view, "second_view_misalign_mm_deg": [second_view_misalign[0] * 1e3, second_view_misalign[1].to_degrees()], "known_viewpoint": !unknown_viewpoint, "known_table": !unknown_table,
                 "test": splits.iter().position(|s| *s == Split::Test).map(|i| &reports[i]),
                 "train": splits.iter().position(|s| *s == Split::Train).map(|i| &reports[i]),
             });

@@ -48,6 +48,10 @@ pub struct TransferEvalOptions {
     /// camera position: with `known_viewpoint` it is told the first
     /// camera's, without it none (what README.md advises for merged views).
     pub second_view: bool,
+    /// The second camera's calibration error: its points moved by this
+    /// distance (m) and turned by this angle (rad) about their centroid,
+    /// each in a direction drawn from the view's seed.
+    pub second_view_misalign: [f64; 2],
     pub seed: u64,
     pub register: RegisterOptions,
     /// Tell the registration where the camera is (the known viewpoint of a real set-up).
@@ -71,6 +75,7 @@ impl Default for TransferEvalOptions {
             on_side: false,
             full_surface: false,
             second_view: false,
+            second_view_misalign: [0.0; 2],
             seed: 7,
             register: RegisterOptions::default(),
             known_viewpoint: true,
@@ -491,6 +496,26 @@ impl PlacedView {
     }
 }
 
+/// Moves `points` rigidly by `distance` (m) and `angle` (rad) about their
+/// centroid, in directions drawn from `seed`: a camera's calibration error.
+fn misalign(points: &mut [Point3<f64>], [distance, angle]: [f64; 2], seed: u64) {
+    if points.is_empty() || (distance == 0.0 && angle == 0.0) {
+        return;
+    }
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x6d69_7361_6c69_676e);
+    let mut direction = || {
+        let (z, phi) = (2.0 * rng.random::<f64>() - 1.0, std::f64::consts::TAU * rng.random::<f64>());
+        let r = (1.0 - z * z).max(0.0).sqrt();
+        Vector3::new(r * phi.cos(), r * phi.sin(), z)
+    };
+    let (axis, shift) = (direction(), direction() * distance);
+    let turn = UnitQuaternion::from_scaled_axis(axis * angle);
+    let centroid = points.iter().fold(Vector3::zeros(), |a, p| a + p.coords) / points.len() as f64;
+    for p in points.iter_mut() {
+        *p = Point3::from(centroid + turn * (p.coords - centroid) + shift);
+    }
+}
+
 fn trial(
     registrar: &Registrar,
     inst: &Instance,
@@ -528,7 +553,9 @@ fn trial(
     }
     let second_capture_seed = (opts.second_view && !opts.full_surface).then(|| rng.random::<u64>());
     if let Some(seed) = second_capture_seed {
-        cloud.extend(placement.second_view(&inst.mesh, view, opts.views, opts.noise)?.capture(seed)?);
+        let mut second = placement.second_view(&inst.mesh, view, opts.views, opts.noise)?.capture(seed)?;
+        misalign(&mut second, opts.second_view_misalign, seed);
+        cloud.extend(second);
     }
     add_outliers(&mut cloud, opts.outliers, rng);
     // What the view itself leaves open: turns of the upright true tool about
