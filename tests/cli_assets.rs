@@ -96,3 +96,41 @@ fn bad_input_is_a_clear_error_with_a_nonzero_exit() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("teapot"));
 }
+
+/// `eval transfer --second-view` merges each view with a second camera's and
+/// says so in its JSON; the calibration error it can add needs it, and must
+/// be two non-negative numbers.
+#[test]
+fn eval_transfer_takes_a_second_view() {
+    let v = json(&[
+        "eval",
+        "transfer",
+        "--category",
+        "hammer",
+        "--views",
+        "2",
+        "--split",
+        "test",
+        "--second-view",
+        "--second-view-misalign",
+        "2,0.5",
+        "--json",
+    ]);
+    assert_eq!(v["second_view"], true);
+    assert_eq!(v["second_view_misalign_mm_deg"], serde_json::json!([2.0, 0.5]));
+    let test = &v["test"];
+    assert_eq!(test["trials"], 6, "{test}");
+    // Two views of a hammer: about twice one view's points, and right.
+    assert!(test["points_per_view"]["median"].as_f64().unwrap() > 4000.0, "{test}");
+    assert!(test["ours"]["keypoint_error_mm"]["median"].as_f64().unwrap() < 5.0, "{test}");
+    for (args, says) in [
+        (&["--second-view-misalign", "2,0.5"][..], "needs --second-view"),
+        (&["--second-view", "--second-view-misalign", "2"][..], "two non-negative numbers"),
+        (&["--second-view", "--second-view-misalign", "2,-1"][..], "two non-negative numbers"),
+    ] {
+        let out = graspd(&[&["eval", "transfer", "--category", "hammer", "--views", "1"][..], args].concat());
+        assert!(!out.status.success(), "{args:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(says), "{args:?}: {err}");
+    }
+}
