@@ -40,7 +40,7 @@ pub enum EvalCommand {
         full_surface: bool,
         /// Merge each view with a second camera's, a quarter turn round the
         /// tool and 25° up (a robot's second look); the registration is told
-        /// the first camera, or none with --unknown-viewpoint.
+        /// both cameras, or neither with --unknown-viewpoint.
         #[arg(long)]
         second_view: bool,
         /// With --second-view: the second camera's calibration error, its

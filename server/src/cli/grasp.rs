@@ -306,7 +306,7 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
     let demo_keypoints = demo.checked_keypoints(&hand)?;
     let canonical = canonical_instance(category)?;
     let cloud = graspd::io::read_cloud(&a.cloud)?;
-    let (up, viewpoint) = a.view.parse()?;
+    let super::register::SetUp { up, viewpoint, second_viewpoint } = a.view.parse()?;
 
     let t_load = Instant::now();
     let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
@@ -316,8 +316,10 @@ pub fn run_grasp(a: GraspArgs) -> CliResult {
 
     // A given table is also the registration's support (in a z-up frame).
     let support_height = if a.no_table { None } else { super::register::support_height(up, a.table_z).ok().flatten() };
-    let reg = registrar
-        .register(&cloud, &RegisterOptions { up, viewpoint, support_height, seed: a.seed, ..Default::default() })?;
+    let reg = registrar.register(
+        &cloud,
+        &RegisterOptions { up, viewpoint, second_viewpoint, support_height, seed: a.seed, ..Default::default() },
+    )?;
     let tool = TransferredTool::from_registration(&registrar, &reg, &model)?;
 
     let mut warnings = Vec::new();

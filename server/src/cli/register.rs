@@ -41,16 +41,29 @@ pub struct ViewArgs {
     /// (`estimated_viewpoint` in the JSON); giving it is more accurate.
     #[arg(long, allow_hyphen_values = true)]
     viewpoint: Option<String>,
+    /// With --viewpoint, a second camera's position in the cloud's frame,
+    /// "x,y,z", when the cloud merges two cameras' views (a second look at
+    /// the tool): model points facing it are expected in the view too.
+    #[arg(long, allow_hyphen_values = true, requires = "viewpoint")]
+    second_viewpoint: Option<String>,
 }
 
-/// The up direction and the camera position, each when known.
-pub type UpAndViewpoint = (Option<[f64; 3]>, Option<[f64; 3]>);
+/// The up direction and the cameras' positions, each when known.
+pub struct SetUp {
+    pub up: Option<[f64; 3]>,
+    pub viewpoint: Option<[f64; 3]>,
+    pub second_viewpoint: Option<[f64; 3]>,
+}
 
 impl ViewArgs {
-    /// (up, viewpoint), parsed.
-    pub fn parse(&self) -> Result<UpAndViewpoint, String> {
-        let viewpoint = self.viewpoint.as_deref().map(|v| parse_vec3("--viewpoint", v)).transpose()?;
-        Ok((parse_up(&self.up)?, viewpoint))
+    /// The set-up, parsed.
+    pub fn parse(&self) -> Result<SetUp, String> {
+        let vec3 = |flag: &str, v: &Option<String>| v.as_deref().map(|v| parse_vec3(flag, v)).transpose();
+        Ok(SetUp {
+            up: parse_up(&self.up)?,
+            viewpoint: vec3("--viewpoint", &self.viewpoint)?,
+            second_viewpoint: vec3("--second-viewpoint", &self.second_viewpoint)?,
+        })
     }
 }
 
@@ -98,9 +111,9 @@ pub fn run(a: RegisterArgs) -> CliResult {
     let cloud = graspd::io::read_cloud(&a.cloud)?;
     let space = builtin::load_or_build(category, &spaces_dir(), |_, _| {})?;
     let registrar = Registrar::new(space);
-    let (up, viewpoint) = a.view.parse()?;
+    let SetUp { up, viewpoint, second_viewpoint } = a.view.parse()?;
     let support_height = support_height(up, a.table_z)?;
-    let opts = RegisterOptions { up, viewpoint, support_height, seed: a.seed, ..Default::default() };
+    let opts = RegisterOptions { up, viewpoint, second_viewpoint, support_height, seed: a.seed, ..Default::default() };
     let reg = registrar.register(&cloud, &opts)?;
     if let Some(p) = &a.shape_out {
         graspd::io::write_cloud(p, &registrar.completed_shape(&reg))?;

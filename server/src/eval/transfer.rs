@@ -44,9 +44,9 @@ pub struct TransferEvalOptions {
     /// diagnostic: separates the shape space's error from the partial view's).
     pub full_surface: bool,
     /// Merge each view with a second camera's, a quarter turn round the tool
-    /// and 25° up (a robot's second look). The registration takes one
-    /// camera position: with `known_viewpoint` it is told the first
-    /// camera's, without it none (what README.md advises for merged views).
+    /// and 25° up (a robot's second look). With `known_viewpoint` the
+    /// registration is told both cameras (`RegisterOptions::viewpoint`,
+    /// `second_viewpoint`), without it neither.
     pub second_view: bool,
     /// The second camera's calibration error: its points moved by this
     /// distance (m) and turned by this angle (rad) about their centroid,
@@ -552,10 +552,13 @@ fn trial(
         return None;
     }
     let second_capture_seed = (opts.second_view && !opts.full_surface).then(|| rng.random::<u64>());
+    let mut second_viewpoint = None;
     if let Some(seed) = second_capture_seed {
-        let mut second = placement.second_view(&inst.mesh, view, opts.views, opts.noise)?.capture(seed)?;
+        let placed2 = placement.second_view(&inst.mesh, view, opts.views, opts.noise)?;
+        let mut second = placed2.capture(seed)?;
         misalign(&mut second, opts.second_view_misalign, seed);
         cloud.extend(second);
+        second_viewpoint = Some(placed2.viewpoint());
     }
     add_outliers(&mut cloud, opts.outliers, rng);
     // What the view itself leaves open: turns of the upright true tool about
@@ -586,12 +589,15 @@ fn trial(
     }
     let t0 = Instant::now();
     let (cam_pose, t_cam) = (cam.world_from_camera, cam.world_from_camera.translation.vector);
-    // With a second view, the first camera's (what a client that knows only
-    // one camera would say; `--unknown-viewpoint` to say nothing).
+    // With a second view, both cameras (`--unknown-viewpoint`: neither).
     let viewpoint = (opts.known_viewpoint && !opts.full_surface).then_some(placed.viewpoint());
+    let second_viewpoint = second_viewpoint.filter(|_| viewpoint.is_some());
     let support_height = opts.known_table.then_some(0.0).or(opts.register.support_height);
     let reg = registrar
-        .register(&cloud, &RegisterOptions { seed: register_seed, viewpoint, support_height, ..opts.register })
+        .register(
+            &cloud,
+            &RegisterOptions { seed: register_seed, viewpoint, support_height, second_viewpoint, ..opts.register },
+        )
         .ok()?;
     let fit_ms = t0.elapsed().as_secs_f64() * 1e3;
     let ours_kp: Vec<P3> = reg.keypoints.iter().map(|k| k.position).collect();
@@ -605,6 +611,7 @@ fn trial(
                 seed: rng.random(),
                 fit_latent: false,
                 viewpoint,
+                second_viewpoint,
                 support_height: None,
                 ..opts.register
             },

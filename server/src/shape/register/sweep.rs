@@ -25,6 +25,7 @@ pub(super) struct YawSweep<'a> {
     pub(super) screen: Option<(&'a LinearModel, &'a [P3])>,
     pub(super) x: &'a ViewPoints,
     pub(super) viewpoint: Option<Vector3<f64>>,
+    pub(super) second: Option<Vector3<f64>>,
     pub(super) free_space: Option<&'a FreeSpace>,
     /// The canonical frame's origin in normalised model coordinates.
     pub(super) origin: Vector3<f64>,
@@ -74,7 +75,7 @@ impl YawSweep<'_> {
             |model: &LinearModel, normals: &[P3], shift: bool, wanted: &dyn Fn(usize) -> bool| -> Vec<(f64, f64)> {
                 estep.use_model_order(model.block_order(), model.len());
                 let y_model = model.evaluate(&lead.latent);
-                let view = View { normals, viewpoint: self.viewpoint, occlusion: None };
+                let view = View { normals, viewpoint: self.viewpoint, occlusion: None, second: self.second };
                 (0..k)
                     .map(|i| {
                         if !wanted(i) {
