@@ -40,7 +40,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .place(&inst.mesh, view, views, DepthNoise::default())
         .ok_or("the view cannot be placed")?;
     let mut cloud = placed.capture(capture_seed).ok_or("the camera sees nothing")?;
-    if let Some(seed) = std::env::var("SECOND_VIEW_SEED").ok() {
+    if let Ok(seed) = std::env::var("SECOND_VIEW_SEED") {
         let second = Placement::upright(yaw, [x, y])
             .second_view(&inst.mesh, view, views, DepthNoise::default())
             .ok_or("the second view cannot be placed")?;
