@@ -32,7 +32,14 @@ struct Fixture {
     on_table: serde_json::Value,
     /// `graspd hand info --json`: the bundled hand the daemon's Grasp solves for.
     hand: serde_json::Value,
+    /// `graspd register --viewpoint FIRST_CAMERA --second-viewpoint SECOND_CAMERA
+    /// --json` on the first view.
+    two_cameras: serde_json::Value,
 }
+
+/// The camera positions of `Fixture::two_cameras`, in the cloud's frame.
+const FIRST_CAMERA: [f32; 3] = [0.05, -0.45, 0.4];
+const SECOND_CAMERA: [f32; 3] = [0.45, 0.05, 0.3];
 
 fn fixture() -> &'static Fixture {
     static F: OnceLock<Fixture> = OnceLock::new();
@@ -63,7 +70,11 @@ fn fixture() -> &'static Fixture {
         let first = views[0].0.to_str().unwrap();
         let on_table = graspd_json(&["register", "--category", "mug", "--cloud", first, "--table-z", "0", "--json"]);
         let hand = graspd_json(&["hand", "info", "--json"]);
-        Fixture { _dir: dir, views, grasp, on_table, hand }
+        let text = |c: [f32; 3]| format!("{},{},{}", c[0], c[1], c[2]);
+        let (a, b) = (text(FIRST_CAMERA), text(SECOND_CAMERA));
+        let args = ["register", "--category", "mug", "--cloud", first, "--viewpoint", &a, "--second-viewpoint", &b];
+        let two_cameras = graspd_json(&[&args[..], &["--json"]].concat());
+        Fixture { _dir: dir, views, grasp, on_table, hand, two_cameras }
     })
 }
 
@@ -344,6 +355,25 @@ fn bad_inputs_get_their_status_and_the_daemon_keeps_serving() {
             StatusCode::InvalidArgument,
         ),
         (
+            "a reserved field set (a newer protocol's?)",
+            Box::new(move |h| {
+                set_mug(h);
+                h.reserved = 1
+            }),
+            good.clone(),
+            StatusCode::InvalidArgument,
+        ),
+        (
+            "a second camera without the first",
+            Box::new(move |h| {
+                set_mug(h);
+                h.flags = proto::flags::SECOND_VIEWPOINT;
+                h.second_viewpoint_in_cloud_m = SECOND_CAMERA
+            }),
+            good.clone(),
+            StatusCode::InvalidArgument,
+        ),
+        (
             "unknown flags",
             Box::new(move |h| {
                 set_mug(h);
@@ -457,6 +487,14 @@ fn bad_inputs_get_their_status_and_the_daemon_keeps_serving() {
     assert_eq!(StatusCode::from_u32(h.status), StatusCode::Ok, "{}", proto::text_lossy(&h.message));
     assert_eq!(body.registration.viewpoint_source, proto::viewpoint_source::GIVEN);
     assert_eq!(body.registration.viewpoint_cloud_m, camera.map(f64::from));
+    // Two cameras' positions: the answer of `graspd register --viewpoint
+    // --second-viewpoint` on the same cloud.
+    let co = CloudOptions { viewpoint: Some(FIRST_CAMERA), second_viewpoint: Some(SECOND_CAMERA), ..Default::default() };
+    let r = c.register_with("mug", &f.views[0].1, &co, TIMEOUT).unwrap();
+    assert_eq!(r.latent, floats(&f.two_cameras["latent"]), "two cameras: latent");
+    for (g, e) in r.keypoints.iter().zip(f.two_cameras["keypoints"].as_array().unwrap()) {
+        assert_eq!(g.position.to_vec(), floats(&e["position"]), "two cameras: {}", g.name);
+    }
     // Grasp: its own checks (table, pre-grasp options), then the same answer as `graspd grasp`.
     for (what, edit) in [
         (
@@ -519,9 +557,9 @@ fn bad_inputs_get_their_status_and_the_daemon_keeps_serving() {
     assert_same_registration(&c.register("mug", &f.views[1].1, TIMEOUT).unwrap(), &f.views[1].2);
     let s = c.stats().unwrap();
     let reg = &s.methods[proto::Method::Register as usize];
-    // The cases, the given camera position, the two in flight at once and the last.
-    assert_eq!(reg.requests as usize, cases.len() + 4);
-    assert_eq!(reg.by_status[StatusCode::InvalidArgument as usize], 11);
+    // The cases, the given camera positions, the two in flight at once and the last.
+    assert_eq!(reg.requests as usize, cases.len() + 5);
+    assert_eq!(reg.by_status[StatusCode::InvalidArgument as usize], 13);
     assert_eq!(reg.by_status[StatusCode::NotFound as usize], 1);
     assert_eq!(reg.by_status[StatusCode::DeadlineExceeded as usize], 1);
     assert_eq!(reg.by_status[StatusCode::ResourceExhausted as usize], 2);
@@ -762,6 +800,8 @@ fn the_python_sdk_answers_as_the_cli() {
         "grasp": f.grasp,
         "on_table": f.on_table,
         "hand": f.hand,
+        "two_cameras": f.two_cameras,
+        "cameras": [FIRST_CAMERA, SECOND_CAMERA],
     });
     std::fs::write(&fixture_file, serde_json::to_vec(&v).unwrap()).unwrap();
     let out = Command::new(&python)
@@ -773,7 +813,7 @@ fn the_python_sdk_answers_as_the_cli() {
     let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "the Python SDK's tests failed:\n{text}");
     // Every test ran against the daemon: none skipped.
-    assert!(text.contains("7 passed") && !text.contains("skipped"), "{text}");
+    assert!(text.contains("8 passed") && !text.contains("skipped"), "{text}");
 
     // A Python client started before its daemon waits for it (connect_timeout_s).
     let prefix = unique_prefix("python_wait");

@@ -335,6 +335,10 @@ pub struct CloudOptions {
     pub up: Option<[f32; 3]>,
     /// The camera's origin in the cloud's frame, when known ([0, 0, 0] for a cloud in the camera frame).
     pub viewpoint: Option<[f32; 3]>,
+    /// With `viewpoint`: a second camera's origin, when the cloud merges two
+    /// cameras' views (a second look at the tool). Alone it is refused
+    /// (INVALID_ARGUMENT).
+    pub second_viewpoint: Option<[f32; 3]>,
     pub seed: u64,
     /// Grasp: table plane (None: AUTO). `At(z)` in a z-up frame is also the
     /// plane the tool rests on: Register and Grasp hold the registered
@@ -359,6 +363,7 @@ impl Default for CloudOptions {
             cloud_frame: "world".into(),
             up: Some([0.0, 0.0, 1.0]),
             viewpoint: None,
+            second_viewpoint: None,
             seed: 0,
             table: None,
             pregrasp_backoff_m: None,
@@ -1021,6 +1026,10 @@ fn apply_cloud_options(h: &mut RequestHeader, category: &str, o: &CloudOptions) 
     if let Some(v) = o.viewpoint {
         h.flags |= proto::flags::VIEWPOINT;
         h.viewpoint_in_cloud_m = v;
+    }
+    if let Some(v) = o.second_viewpoint {
+        h.flags |= proto::flags::SECOND_VIEWPOINT;
+        h.second_viewpoint_in_cloud_m = v;
     }
     h.seed = o.seed;
     match o.table {

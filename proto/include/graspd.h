@@ -36,14 +36,14 @@
  * ------------------------------------------------------------------------- */
 
 /* RequestHeader::protocol_version must equal this; the type names and the
- * service names carry it too ("graspd.v3.*", "<prefix>/v3/<method>"). */
-#define GRASPD_PROTOCOL_VERSION 3u
-#define GRASPD_VERSION_SEGMENT "v3"
+ * service names carry it too ("graspd.v4.*", "<prefix>/v4/<method>"). */
+#define GRASPD_PROTOCOL_VERSION 4u
+#define GRASPD_VERSION_SEGMENT "v4"
 #define GRASPD_DEFAULT_PREFIX "graspd"
 
-/* Request-response service of a method: "<prefix>/v3/<method name>";
- * its paired event service: "<prefix>/v3/<method name>/notify";
- * a client's reply event service: "<prefix>/v3/reply/<token as 16 lower-case
+/* Request-response service of a method: "<prefix>/v4/<method name>";
+ * its paired event service: "<prefix>/v4/<method name>/notify";
+ * a client's reply event service: "<prefix>/v4/reply/<token as 16 lower-case
  * hex digits>" (see RequestHeader::notify_token). */
 #define GRASPD_METHOD_HEALTH_NAME "health"
 #define GRASPD_METHOD_LIST_CATEGORIES_NAME "list_categories"
@@ -92,7 +92,8 @@
 
 /* RequestHeader::flags bits; unknown bits are refused (INVALID_ARGUMENT). */
 #define GRASPD_FLAG_VIEWPOINT 1u
-#define GRASPD_FLAGS_ALL 1u
+#define GRASPD_FLAG_SECOND_VIEWPOINT 2u /* needs GRASPD_FLAG_VIEWPOINT */
+#define GRASPD_FLAGS_ALL 3u
 
 /* RequestHeader::table_mode. */
 #define GRASPD_TABLE_MODE_AUTO 0u
@@ -122,20 +123,20 @@
  * it to iceoryx2; a service opened with another type fails)
  * ------------------------------------------------------------------------- */
 
-#define GRASPD_TYPE_NAME_REQUEST_HEADER "graspd.v3.RequestHeader"
-#define GRASPD_TYPE_NAME_POINT "graspd.v3.Point"
-#define GRASPD_TYPE_NAME_NO_PAYLOAD "graspd.v3.NoPayload"
-#define GRASPD_TYPE_NAME_RESPONSE_HEADER "graspd.v3.ResponseHeader"
-#define GRASPD_TYPE_NAME_HEALTH_RESPONSE "graspd.v3.HealthResponse"
-#define GRASPD_TYPE_NAME_CATEGORY_INFO "graspd.v3.CategoryInfo"
-#define GRASPD_TYPE_NAME_CATEGORIES_RESPONSE "graspd.v3.CategoriesResponse"
-#define GRASPD_TYPE_NAME_KEYPOINT "graspd.v3.Keypoint"
-#define GRASPD_TYPE_NAME_REGISTRATION "graspd.v3.Registration"
-#define GRASPD_TYPE_NAME_REGISTER_RESPONSE "graspd.v3.RegisterResponse"
-#define GRASPD_TYPE_NAME_HAND_CONFIGURATION "graspd.v3.HandConfiguration"
-#define GRASPD_TYPE_NAME_GRASP_RESPONSE "graspd.v3.GraspResponse"
-#define GRASPD_TYPE_NAME_METHOD_STATS "graspd.v3.MethodStats"
-#define GRASPD_TYPE_NAME_STATS_RESPONSE "graspd.v3.StatsResponse"
+#define GRASPD_TYPE_NAME_REQUEST_HEADER "graspd.v4.RequestHeader"
+#define GRASPD_TYPE_NAME_POINT "graspd.v4.Point"
+#define GRASPD_TYPE_NAME_NO_PAYLOAD "graspd.v4.NoPayload"
+#define GRASPD_TYPE_NAME_RESPONSE_HEADER "graspd.v4.ResponseHeader"
+#define GRASPD_TYPE_NAME_HEALTH_RESPONSE "graspd.v4.HealthResponse"
+#define GRASPD_TYPE_NAME_CATEGORY_INFO "graspd.v4.CategoryInfo"
+#define GRASPD_TYPE_NAME_CATEGORIES_RESPONSE "graspd.v4.CategoriesResponse"
+#define GRASPD_TYPE_NAME_KEYPOINT "graspd.v4.Keypoint"
+#define GRASPD_TYPE_NAME_REGISTRATION "graspd.v4.Registration"
+#define GRASPD_TYPE_NAME_REGISTER_RESPONSE "graspd.v4.RegisterResponse"
+#define GRASPD_TYPE_NAME_HAND_CONFIGURATION "graspd.v4.HandConfiguration"
+#define GRASPD_TYPE_NAME_GRASP_RESPONSE "graspd.v4.GraspResponse"
+#define GRASPD_TYPE_NAME_METHOD_STATS "graspd.v4.MethodStats"
+#define GRASPD_TYPE_NAME_STATS_RESPONSE "graspd.v4.StatsResponse"
 
 /* In C++, the type name iceoryx2's bindings read; nothing in C. */
 #ifdef __cplusplus
@@ -148,12 +149,12 @@
  * Messages
  * ------------------------------------------------------------------------- */
 
-/* The request user header of every method (144 bytes). */
+/* The request user header of every method (160 bytes). */
 typedef struct graspd_RequestHeader {
     GRASPD_IOX2_TYPE_NAME(GRASPD_TYPE_NAME_REQUEST_HEADER)
     uint64_t request_id;       /* chosen by the client, echoed in the response */
     uint64_t deadline_unix_ns; /* absolute, CLOCK_REALTIME; 0 = none */
-    uint64_t notify_token;     /* non-zero: the daemon notifies <prefix>/v3/reply/<token> after responding */
+    uint64_t notify_token;     /* non-zero: the daemon notifies <prefix>/v4/reply/<token> after responding */
     uint64_t seed;             /* seed of the registration's randomised parts */
     uint32_t protocol_version; /* GRASPD_PROTOCOL_VERSION */
     uint32_t flags;            /* GRASPD_FLAG_* */
@@ -165,6 +166,8 @@ typedef struct graspd_RequestHeader {
     float pregrasp_backoff_m;          /* Grasp: 0 = daemon default */
     float pregrasp_joint_fraction;     /* Grasp: in (0, 1]; 0 = daemon default */
     float viewpoint_in_cloud_m[3];     /* with GRASPD_FLAG_VIEWPOINT: the camera's origin in the cloud's frame */
+    float second_viewpoint_in_cloud_m[3]; /* with GRASPD_FLAG_SECOND_VIEWPOINT: a second camera's, the cloud merging both views */
+    uint32_t reserved;                 /* must be 0 */
 } graspd_RequestHeader;
 
 /* One point of a cloud, metres, in the request's cloud_frame (12 bytes, the
@@ -343,7 +346,7 @@ typedef struct graspd_StatsResponse {
 #define GRASPD_STATIC_ASSERT(cond, msg) _Static_assert(cond, msg)
 #endif
 
-GRASPD_STATIC_ASSERT(sizeof(graspd_RequestHeader) == 144, "RequestHeader is 144 bytes");
+GRASPD_STATIC_ASSERT(sizeof(graspd_RequestHeader) == 160, "RequestHeader is 160 bytes");
 GRASPD_STATIC_ASSERT(sizeof(graspd_Point) == 12, "Point is 12 bytes");
 GRASPD_STATIC_ASSERT(sizeof(graspd_NoPayload) == 8, "NoPayload is 8 bytes");
 GRASPD_STATIC_ASSERT(sizeof(graspd_ResponseHeader) == 160, "ResponseHeader is 160 bytes");

@@ -4,7 +4,7 @@
 //! Every type here is `#[repr(C)]`, holds only integers, floats and fixed
 //! arrays of them (any bit pattern is a valid value, all zeros is a valid
 //! value), has no implicit padding, and carries a stable iceoryx2 type name
-//! (`graspd.v3.*`) so that clients in other languages can open the same
+//! (`graspd.v4.*`) so that clients in other languages can open the same
 //! services. README.md in this crate is the reference for each field, unit
 //! and frame; the layout tests at the bottom pin sizes and offsets.
 //! `include/graspd.h` declares the same types for C and C++;
@@ -21,7 +21,7 @@ use iceoryx2::prelude::ZeroCopySend;
 pub mod json;
 
 /// Bumped whenever a message layout or a field's meaning changes. The type
-/// names carry the major version too (`graspd.v3.*`), so a client built
+/// names carry the major version too (`graspd.v4.*`), so a client built
 /// against another layout cannot even open the services.
 ///
 /// Version 2 (2026-12-03): `MAX_LATENT` 8 → 16 (a space keeps every mode its
@@ -34,13 +34,18 @@ pub mod json;
 /// `latent_mahalanobis`, `contradicted_fraction`, and `table_points` of the
 /// stray ones); Health names the hand Grasp solves for; each category says
 /// whether Grasp serves it.
-pub const PROTOCOL_VERSION: u32 = 3;
+///
+/// Version 4 (2026-12-07): `RequestHeader` carries a second camera's
+/// position (`second_viewpoint_in_cloud_m`, flag SECOND_VIEWPOINT) for a
+/// cloud that merges two cameras' views, and a `reserved` u32 that must be
+/// zero (a later field can take it without a new version).
+pub const PROTOCOL_VERSION: u32 = 4;
 
-/// Service names are `<prefix>/v3/<method>`; the prefix is configurable so
+/// Service names are `<prefix>/v4/<method>`; the prefix is configurable so
 /// that several daemons (or parallel tests) can share one machine.
 pub const DEFAULT_PREFIX: &str = "graspd";
 /// The path segment of this protocol's major version.
-pub const VERSION_SEGMENT: &str = "v3";
+pub const VERSION_SEGMENT: &str = "v4";
 
 /// Fixed-size UTF-8 name: the bytes of the string, NUL padded. A name of
 /// exactly 32 bytes has no terminator.
@@ -85,19 +90,19 @@ impl Method {
         }
     }
 
-    /// `<prefix>/v3/<method>`: the request-response service.
+    /// `<prefix>/v4/<method>`: the request-response service.
     pub fn service_name(self, prefix: &str) -> String {
         format!("{prefix}/{VERSION_SEGMENT}/{}", self.name())
     }
 
-    /// `<prefix>/v3/<method>/notify`: the event service a client notifies
+    /// `<prefix>/v4/<method>/notify`: the event service a client notifies
     /// after sending a request, so that an event-driven daemon wakes up.
     pub fn notify_service_name(self, prefix: &str) -> String {
         format!("{prefix}/{VERSION_SEGMENT}/{}/notify", self.name())
     }
 }
 
-/// `<prefix>/v3/reply/<token as 16 lower-case hex digits>`: the event service
+/// `<prefix>/v4/reply/<token as 16 lower-case hex digits>`: the event service
 /// a client creates (one listener: the client) and names in
 /// [`RequestHeader::notify_token`]; the daemon notifies it after each response.
 pub fn reply_service_name(prefix: &str, token: u64) -> String {
@@ -249,9 +254,9 @@ macro_rules! zeroed {
 unsafe impl Plain for Point {}
 unsafe impl Plain for NoPayload {}
 
-/// The request user header of every method (iceoryx2 "user header"), 144 bytes.
+/// The request user header of every method (iceoryx2 "user header"), 160 bytes.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v3.RequestHeader")]
+#[type_name("graspd.v4.RequestHeader")]
 #[repr(C)]
 pub struct RequestHeader {
     /// Chosen by the client, echoed in the response.
@@ -289,19 +294,28 @@ pub struct RequestHeader {
     /// ((0, 0, 0) for a cloud in the camera's frame). Model surfaces facing away
     /// from it are not expected in the view.
     pub viewpoint_in_cloud_m: [f32; 3],
+    /// With flags VIEWPOINT and SECOND_VIEWPOINT: a second camera's origin in
+    /// the cloud's frame, metres, when the cloud merges two cameras' views
+    /// (a second look at the tool). Model surfaces facing it are expected too.
+    pub second_viewpoint_in_cloud_m: [f32; 3],
+    /// Must be 0 (INVALID_ARGUMENT otherwise): a later protocol may give it a
+    /// meaning, which this daemon would otherwise ignore.
+    pub reserved: u32,
 }
 
 /// Bits of [`RequestHeader::flags`].
 pub mod flags {
     /// `viewpoint_in_cloud_m` is set.
     pub const VIEWPOINT: u32 = 1;
-    pub const ALL: u32 = VIEWPOINT;
+    /// `second_viewpoint_in_cloud_m` is set (needs VIEWPOINT).
+    pub const SECOND_VIEWPOINT: u32 = 2;
+    pub const ALL: u32 = VIEWPOINT | SECOND_VIEWPOINT;
 }
 
 /// One point of a cloud: (x, y, z) in metres in the request's `cloud_frame`.
 /// Layout identical to `[f32; 3]` / `float[3]` (12 bytes, alignment 4).
 #[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
-#[type_name("graspd.v3.Point")]
+#[type_name("graspd.v4.Point")]
 #[repr(C)]
 pub struct Point(pub [f32; 3]);
 
@@ -316,7 +330,7 @@ impl Point {
 
 /// The request payload of methods without one (Health, ListCategories, Stats).
 #[derive(Clone, Copy, Debug, Default, ZeroCopySend)]
-#[type_name("graspd.v3.NoPayload")]
+#[type_name("graspd.v4.NoPayload")]
 #[repr(C)]
 pub struct NoPayload {
     pub reserved: u64,
@@ -324,7 +338,7 @@ pub struct NoPayload {
 
 /// The response user header of every method, 160 bytes.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v3.ResponseHeader")]
+#[type_name("graspd.v4.ResponseHeader")]
 #[repr(C)]
 pub struct ResponseHeader {
     /// The request's `request_id`.
@@ -345,7 +359,7 @@ pub struct ResponseHeader {
 
 /// Health response body.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v3.HealthResponse")]
+#[type_name("graspd.v4.HealthResponse")]
 #[repr(C)]
 pub struct HealthResponse {
     pub uptime_ns: u64,
@@ -378,7 +392,7 @@ pub struct HealthResponse {
 
 /// One category the daemon serves.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v3.CategoryInfo")]
+#[type_name("graspd.v4.CategoryInfo")]
 #[repr(C)]
 pub struct CategoryInfo {
     pub name: Name,
@@ -397,7 +411,7 @@ pub struct CategoryInfo {
 
 /// ListCategories response body.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v3.CategoriesResponse")]
+#[type_name("graspd.v4.CategoriesResponse")]
 #[repr(C)]
 pub struct CategoriesResponse {
     pub count: u32,
@@ -407,7 +421,7 @@ pub struct CategoriesResponse {
 
 /// A named point of a registration (a transferred keypoint).
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v3.Keypoint")]
+#[type_name("graspd.v4.Keypoint")]
 #[repr(C)]
 pub struct Keypoint {
     pub name: Name,
@@ -417,7 +431,7 @@ pub struct Keypoint {
 
 /// A registration of a category's shape space to a cloud.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v3.Registration")]
+#[type_name("graspd.v4.Registration")]
 #[repr(C)]
 pub struct Registration {
     /// Latent shape coordinates (first `latent_dim` used; the rest zero).
@@ -493,7 +507,7 @@ pub struct Registration {
 
 /// Register response body.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v3.RegisterResponse")]
+#[type_name("graspd.v4.RegisterResponse")]
 #[repr(C)]
 pub struct RegisterResponse {
     pub registration: Registration,
@@ -501,7 +515,7 @@ pub struct RegisterResponse {
 
 /// A hand configuration: wrist (palm root link) pose and joint positions.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v3.HandConfiguration")]
+#[type_name("graspd.v4.HandConfiguration")]
 #[repr(C)]
 pub struct HandConfiguration {
     /// Rotation of the hand's root (palm) frame into the cloud's frame, (x, y, z, w).
@@ -516,7 +530,7 @@ pub struct HandConfiguration {
 
 /// Grasp response body: registration, grasp and pre-grasp in one round trip.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v3.GraspResponse")]
+#[type_name("graspd.v4.GraspResponse")]
 #[repr(C)]
 pub struct GraspResponse {
     pub registration: Registration,
@@ -546,7 +560,7 @@ pub struct GraspResponse {
 
 /// Counters and latencies of one method.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v3.MethodStats")]
+#[type_name("graspd.v4.MethodStats")]
 #[repr(C)]
 pub struct MethodStats {
     pub name: Name,
@@ -572,7 +586,7 @@ pub struct MethodStats {
 
 /// Stats response body.
 #[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[type_name("graspd.v3.StatsResponse")]
+#[type_name("graspd.v4.StatsResponse")]
 #[repr(C)]
 pub struct StatsResponse {
     pub uptime_ns: u64,
@@ -710,13 +724,15 @@ mod tests {
     /// and include/graspd.h changes with it (tests/c_header.rs).
     #[test]
     fn layouts_are_pinned() {
-        assert_eq!((size_of::<RequestHeader>(), align_of::<RequestHeader>()), (144, 8));
+        assert_eq!((size_of::<RequestHeader>(), align_of::<RequestHeader>()), (160, 8));
         assert_eq!(offset_of!(RequestHeader, protocol_version), 32);
         assert_eq!(offset_of!(RequestHeader, category), 40);
         assert_eq!(offset_of!(RequestHeader, cloud_frame), 72);
         assert_eq!(offset_of!(RequestHeader, up_in_cloud), 104);
         assert_eq!(offset_of!(RequestHeader, table_mode), 116);
         assert_eq!(offset_of!(RequestHeader, viewpoint_in_cloud_m), 132);
+        assert_eq!(offset_of!(RequestHeader, second_viewpoint_in_cloud_m), 144);
+        assert_eq!(offset_of!(RequestHeader, reserved), 156);
         assert_eq!((size_of::<Point>(), align_of::<Point>()), (12, 4));
         assert_eq!(size_of::<NoPayload>(), 8);
         assert_eq!((size_of::<ResponseHeader>(), align_of::<ResponseHeader>()), (160, 8));
@@ -798,7 +814,7 @@ mod tests {
         assert_eq!(StatusCode::Unavailable as u32, 14);
         assert_eq!(StatusCode::from_u32(9), StatusCode::FailedPrecondition);
         assert_eq!(StatusCode::from_u32(12345), StatusCode::Internal);
-        assert_eq!(Method::Register.service_name("graspd"), "graspd/v3/register");
-        assert_eq!(reply_service_name("p", 255), "p/v3/reply/00000000000000ff");
+        assert_eq!(Method::Register.service_name("graspd"), "graspd/v4/register");
+        assert_eq!(reply_service_name("p", 255), "p/v4/reply/00000000000000ff");
     }
 }

@@ -55,6 +55,8 @@ fn rust_facts() -> BTreeSet<String> {
             pregrasp_backoff_m,
             pregrasp_joint_fraction,
             viewpoint_in_cloud_m,
+            second_viewpoint_in_cloud_m,
+            reserved,
         }
     );
     // Point is a tuple struct; the header names its one field `xyz`.
@@ -189,6 +191,7 @@ fn rust_facts() -> BTreeSet<String> {
         ("GRASPD_STATUS_INTERNAL", StatusCode::Internal as u64),
         ("GRASPD_STATUS_UNAVAILABLE", StatusCode::Unavailable as u64),
         ("GRASPD_FLAG_VIEWPOINT", flags::VIEWPOINT as u64),
+        ("GRASPD_FLAG_SECOND_VIEWPOINT", flags::SECOND_VIEWPOINT as u64),
         ("GRASPD_FLAGS_ALL", flags::ALL as u64),
         ("GRASPD_TABLE_MODE_AUTO", table_mode::AUTO as u64),
         ("GRASPD_TABLE_MODE_NONE", table_mode::NONE as u64),

@@ -361,7 +361,9 @@ class Client:
         the tool's lowest point on it. None: not known.
         ``cloud`` options: ``cloud_frame`` (default "world"), ``up`` (world up in
         the cloud's frame, default (0, 0, 1); None = unknown), ``viewpoint`` (the
-        camera's origin in the cloud's frame, None = unknown), ``seed`` (0).
+        camera's origin in the cloud's frame, None = unknown),
+        ``second_viewpoint`` (with ``viewpoint``: a second camera's origin,
+        when the points merge two cameras' views), ``seed`` (0).
         """
         header = self._cloud_header(category, **cloud)
         if table is not None:
@@ -401,7 +403,8 @@ class Client:
         h.protocol_version = proto.PROTOCOL_VERSION
         return h
 
-    def _cloud_header(self, category, cloud_frame="world", up=(0.0, 0.0, 1.0), viewpoint=None, seed=0):
+    def _cloud_header(self, category, cloud_frame="world", up=(0.0, 0.0, 1.0), viewpoint=None,
+                      second_viewpoint=None, seed=0):
         h = self._header()
         try:
             proto.set_text(h.category, category)
@@ -414,6 +417,9 @@ class Client:
         if viewpoint is not None:
             h.flags |= proto.FLAG_VIEWPOINT
             h.viewpoint_in_cloud_m[:] = [float(v) for v in viewpoint]
+        if second_viewpoint is not None:
+            h.flags |= proto.FLAG_SECOND_VIEWPOINT
+            h.second_viewpoint_in_cloud_m[:] = [float(v) for v in second_viewpoint]
         return h
 
     def _method(self, method, request, response):

@@ -1,4 +1,4 @@
-"""The graspd.v3 wire types as ctypes structures, written from proto/README.md.
+"""The graspd.v4 wire types as ctypes structures, written from proto/README.md.
 
 Each class mirrors one table of that file byte for byte (sizes and offsets
 are checked by ``check_layouts``) and names itself to iceoryx2 with the
@@ -8,9 +8,9 @@ these types. Little-endian, native alignment, explicit ``reserved`` fields.
 
 import ctypes
 
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 DEFAULT_PREFIX = "graspd"
-VERSION_SEGMENT = "v3"
+VERSION_SEGMENT = "v4"
 
 MAX_KEYPOINTS = 8
 MAX_LATENT = 16
@@ -22,6 +22,7 @@ Name = ctypes.c_uint8 * 32
 Message = ctypes.c_uint8 * 128
 
 FLAG_VIEWPOINT = 1
+FLAG_SECOND_VIEWPOINT = 2
 
 TABLE_AUTO = 0
 TABLE_NONE = 1
@@ -48,7 +49,7 @@ def _named(type_name):
     return wrap
 
 
-@_named("graspd.v3.RequestHeader")
+@_named("graspd.v4.RequestHeader")
 class RequestHeader(ctypes.Structure):
     _fields_ = [
         ("request_id", ctypes.c_uint64),
@@ -65,20 +66,22 @@ class RequestHeader(ctypes.Structure):
         ("pregrasp_backoff_m", ctypes.c_float),
         ("pregrasp_joint_fraction", ctypes.c_float),
         ("viewpoint_in_cloud_m", ctypes.c_float * 3),
+        ("second_viewpoint_in_cloud_m", ctypes.c_float * 3),
+        ("reserved", ctypes.c_uint32),
     ]
 
 
-@_named("graspd.v3.Point")
+@_named("graspd.v4.Point")
 class Point(ctypes.Structure):
     _fields_ = [("x", ctypes.c_float), ("y", ctypes.c_float), ("z", ctypes.c_float)]
 
 
-@_named("graspd.v3.NoPayload")
+@_named("graspd.v4.NoPayload")
 class NoPayload(ctypes.Structure):
     _fields_ = [("reserved", ctypes.c_uint64)]
 
 
-@_named("graspd.v3.ResponseHeader")
+@_named("graspd.v4.ResponseHeader")
 class ResponseHeader(ctypes.Structure):
     _fields_ = [
         ("request_id", ctypes.c_uint64),
@@ -90,7 +93,7 @@ class ResponseHeader(ctypes.Structure):
     ]
 
 
-@_named("graspd.v3.HealthResponse")
+@_named("graspd.v4.HealthResponse")
 class HealthResponse(ctypes.Structure):
     _fields_ = [
         ("uptime_ns", ctypes.c_uint64),
@@ -122,7 +125,7 @@ class CategoryInfo(ctypes.Structure):
     ]
 
 
-@_named("graspd.v3.CategoriesResponse")
+@_named("graspd.v4.CategoriesResponse")
 class CategoriesResponse(ctypes.Structure):
     _fields_ = [
         ("count", ctypes.c_uint32),
@@ -135,7 +138,7 @@ class Keypoint(ctypes.Structure):
     _fields_ = [("name", Name), ("position_cloud_m", ctypes.c_double * 3)]
 
 
-@_named("graspd.v3.RegisterResponse")
+@_named("graspd.v4.RegisterResponse")
 class Registration(ctypes.Structure):
     _fields_ = [
         ("latent", ctypes.c_double * MAX_LATENT),
@@ -177,7 +180,7 @@ class HandConfiguration(ctypes.Structure):
     ]
 
 
-@_named("graspd.v3.GraspResponse")
+@_named("graspd.v4.GraspResponse")
 class GraspResponse(ctypes.Structure):
     _fields_ = [
         ("registration", Registration),
@@ -217,7 +220,7 @@ class MethodStats(ctypes.Structure):
     ]
 
 
-@_named("graspd.v3.StatsResponse")
+@_named("graspd.v4.StatsResponse")
 class StatsResponse(ctypes.Structure):
     _fields_ = [
         ("uptime_ns", ctypes.c_uint64),
@@ -232,7 +235,8 @@ class StatsResponse(ctypes.Structure):
 # (type, size, alignment) from proto/README.md, and field offsets where the
 # tables give them: a mistake in a mirror above fails here, not on the wire.
 LAYOUTS = [
-    (RequestHeader, 144, 8, {"seed": 24, "category": 40, "cloud_frame": 72, "up_in_cloud": 104, "viewpoint_in_cloud_m": 132}),
+    (RequestHeader, 160, 8, {"seed": 24, "category": 40, "cloud_frame": 72, "up_in_cloud": 104, "viewpoint_in_cloud_m": 132,
+                             "second_viewpoint_in_cloud_m": 144, "reserved": 156}),
     (Point, 12, 4, {}),
     (NoPayload, 8, 8, {}),
     (ResponseHeader, 160, 8, {"status": 24, "message": 32}),

@@ -41,7 +41,7 @@ def test_the_wire_types_have_the_contracts_layout():
 @needs_daemon
 def test_health_and_categories(client, fixture):
     h = client.health()
-    assert h["serving"] and h["protocol_version"] == proto.PROTOCOL_VERSION == 3 and h["max_points"] > 0
+    assert h["serving"] and h["protocol_version"] == proto.PROTOCOL_VERSION == 4 and h["max_points"] > 0
     # The bundled hand: its URDF name and actuated joints, as `graspd hand info --json` says.
     assert h["hand_name"] == fixture["hand"]["name"] and h["hand_actuated_joints"] == len(fixture["hand"]["actuated"])
     cats = client.categories()
@@ -49,6 +49,20 @@ def test_health_and_categories(client, fixture):
     assert cats[0]["keypoints"] == [k["name"] for k in fixture["register"]["keypoints"]]
     assert cats[0]["latent_dim"] == len(fixture["register"]["latent"])
     assert cats[0]["grasp_available"] == h["grasp_available"] is True
+
+
+@needs_daemon
+def test_two_cameras_answer_as_the_cli(client, fixture):
+    """A cloud merging two cameras' views, both positions given (protocol 4)."""
+    points = np.array(fixture["points"], dtype=np.float32)
+    first, second = fixture["cameras"]
+    r = client.register("mug", points, viewpoint=first, second_viewpoint=second)
+    expected = fixture["two_cameras"]
+    assert r["latent"] == expected["latent"]
+    assert r["keypoints"] == expected["keypoints"]
+    with pytest.raises(gc.GraspdError) as e:
+        client.register("mug", points, second_viewpoint=second)
+    assert e.value.code == gc.StatusCode.INVALID_ARGUMENT and "needs VIEWPOINT" in str(e.value)
 
 
 @needs_daemon

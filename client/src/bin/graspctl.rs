@@ -95,6 +95,10 @@ struct CloudArgs {
     /// The camera's origin in the cloud's frame, "x,y,z" ("0,0,0" for a cloud in the camera frame).
     #[arg(long)]
     viewpoint: Option<String>,
+    /// With --viewpoint, a second camera's origin, "x,y,z", when the cloud
+    /// merges two cameras' views (a second look at the tool).
+    #[arg(long, requires = "viewpoint")]
+    second_viewpoint: Option<String>,
     /// Table top height z in the cloud's frame, the tool resting on it: the
     /// registration holds its lowest point there (Register and Grasp, z-up
     /// clouds). Grasp's default: a table from the cloud when z is up.
@@ -141,7 +145,8 @@ struct BenchArgs {
     uds: Option<PathBuf>,
 }
 
-fn parse_up(s: &str) -> Result<Option<[f32; 3]>, String> {
+/// "x,y,z" given to `flag`, or "none".
+fn parse_up(flag: &str, s: &str) -> Result<Option<[f32; 3]>, String> {
     if s.eq_ignore_ascii_case("none") {
         return Ok(None);
     }
@@ -149,10 +154,10 @@ fn parse_up(s: &str) -> Result<Option<[f32; 3]>, String> {
         .split(',')
         .map(|x| x.trim().parse::<f32>())
         .collect::<Result<_, _>>()
-        .map_err(|e| format!("--up {s:?}: {e}"))?;
+        .map_err(|e| format!("{flag} {s:?}: {e}"))?;
     match v.as_slice() {
         [x, y, z] => Ok(Some([*x, *y, *z])),
-        _ => Err(format!("--up {s:?}: expected x,y,z or none")),
+        _ => Err(format!("{flag} {s:?}: expected x,y,z or none")),
     }
 }
 
@@ -302,7 +307,11 @@ fn run(cli: &Cli) -> Result<(), Failure> {
         Command::Register(a) | Command::Grasp(a) => {
             let cloud = read_cloud(&a.cloud).map_err(|e| e.to_string())?;
             let viewpoint = match &a.viewpoint {
-                Some(v) => Some(parse_up(v)?.ok_or("--viewpoint needs three numbers")?),
+                Some(v) => Some(parse_up("--viewpoint", v)?.ok_or("--viewpoint needs three numbers")?),
+                None => None,
+            };
+            let second_viewpoint = match &a.second_viewpoint {
+                Some(v) => Some(parse_up("--second-viewpoint", v)?.ok_or("--second-viewpoint needs three numbers")?),
                 None => None,
             };
             let table = match (a.no_table, a.table_z) {
@@ -312,8 +321,9 @@ fn run(cli: &Cli) -> Result<(), Failure> {
             };
             let co = CloudOptions {
                 cloud_frame: a.frame.clone(),
-                up: parse_up(&a.up)?,
+                up: parse_up("--up", &a.up)?,
                 viewpoint,
+                second_viewpoint,
                 seed: a.seed,
                 table,
                 ..CloudOptions::default()

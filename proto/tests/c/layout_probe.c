@@ -38,6 +38,8 @@ int main(void) {
     FIELD(RequestHeader, pregrasp_backoff_m);
     FIELD(RequestHeader, pregrasp_joint_fraction);
     FIELD(RequestHeader, viewpoint_in_cloud_m);
+    FIELD(RequestHeader, second_viewpoint_in_cloud_m);
+    FIELD(RequestHeader, reserved);
 
     TYPE(Point, GRASPD_TYPE_NAME_POINT);
     FIELD(Point, xyz);
@@ -186,6 +188,7 @@ int main(void) {
     NUMBER(GRASPD_STATUS_INTERNAL);
     NUMBER(GRASPD_STATUS_UNAVAILABLE);
     NUMBER(GRASPD_FLAG_VIEWPOINT);
+    NUMBER(GRASPD_FLAG_SECOND_VIEWPOINT);
     NUMBER(GRASPD_FLAGS_ALL);
     NUMBER(GRASPD_TABLE_MODE_AUTO);
     NUMBER(GRASPD_TABLE_MODE_NONE);

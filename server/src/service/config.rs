@@ -17,7 +17,7 @@ pub enum Waiting {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Config {
-    /// Services are `<service_prefix>/v3/<method>`.
+    /// Services are `<service_prefix>/v4/<method>`.
     pub service_prefix: String,
     /// Categories to load at start (built-in families: mug, drill, hammer).
     pub categories: Vec<String>,

@@ -362,6 +362,12 @@ impl Shared {
                 proto::flags::ALL
             )));
         }
+        if h.reserved != 0 {
+            return Err(Status::invalid(format!(
+                "reserved {:#x}: must be 0 (a newer protocol's field this daemon does not know?)",
+                h.reserved
+            )));
+        }
         if Self::deadline_passed(h) {
             return Err(Status::new(StatusCode::DeadlineExceeded, "deadline passed before the request was read"));
         }

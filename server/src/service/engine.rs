@@ -367,15 +367,21 @@ pub fn register_options(h: &proto::RequestHeader) -> Result<RegisterOptions, Sta
     if h.flags & !proto::flags::ALL != 0 {
         return Err(Status::invalid(format!("flags {:#x}: unknown bits", h.flags)));
     }
-    let viewpoint = if h.flags & proto::flags::VIEWPOINT != 0 {
-        let [x, y, z] = h.viewpoint_in_cloud_m;
-        if !(x.is_finite() && y.is_finite() && z.is_finite()) {
-            return Err(Status::invalid("viewpoint_in_cloud_m is not finite"));
+    let point = |flag: u32, name: &str, [x, y, z]: [f32; 3]| -> Result<Option<[f64; 3]>, Status> {
+        if h.flags & flag == 0 {
+            return Ok(None);
         }
-        Some([x as f64, y as f64, z as f64])
-    } else {
-        None
+        if !(x.is_finite() && y.is_finite() && z.is_finite()) {
+            return Err(Status::invalid(format!("{name} is not finite")));
+        }
+        Ok(Some([x as f64, y as f64, z as f64]))
     };
+    let viewpoint = point(proto::flags::VIEWPOINT, "viewpoint_in_cloud_m", h.viewpoint_in_cloud_m)?;
+    let second_viewpoint =
+        point(proto::flags::SECOND_VIEWPOINT, "second_viewpoint_in_cloud_m", h.second_viewpoint_in_cloud_m)?;
+    if second_viewpoint.is_some() && viewpoint.is_none() {
+        return Err(Status::invalid("flag SECOND_VIEWPOINT needs VIEWPOINT (the first camera's position)"));
+    }
     // A table given in a z-up frame is the plane the tool rests on: the
     // registration holds the tool's lowest point on it (`support_height`).
     let support_height = match h.table_mode {
@@ -387,7 +393,7 @@ pub fn register_options(h: &proto::RequestHeader) -> Result<RegisterOptions, Sta
         }
         _ => None,
     };
-    Ok(RegisterOptions { up, viewpoint, support_height, seed: h.seed, ..Default::default() })
+    Ok(RegisterOptions { up, viewpoint, second_viewpoint, support_height, seed: h.seed, ..Default::default() })
 }
 
 /// The wire's Registration of `reg`, a fit of `points` points given the
@@ -575,6 +581,26 @@ mod tests {
         let direct = c.registrar.register(&points, &register_options(&h).unwrap()).unwrap();
         let wire = engine.register(0, &cloud, &h).unwrap().registration;
         assert_eq!((direct.fit.contradicted_fraction, wire.contradicted_fraction), (None, -1.0));
+    }
+
+    /// A second camera's position travels to the registration with the
+    /// first's; alone, or not finite, it is refused.
+    #[test]
+    fn the_header_gives_a_second_cameras_position_with_the_first() {
+        let mut h = grasp_header();
+        (h.viewpoint_in_cloud_m, h.second_viewpoint_in_cloud_m) = ([0.5, 0.0, 0.375], [0.0, 0.5, 0.25]);
+        h.flags = proto::flags::VIEWPOINT | proto::flags::SECOND_VIEWPOINT;
+        let o = register_options(&h).unwrap();
+        assert_eq!((o.viewpoint, o.second_viewpoint), (Some([0.5, 0.0, 0.375]), Some([0.0, 0.5, 0.25])));
+        h.flags = proto::flags::VIEWPOINT;
+        assert_eq!(register_options(&h).unwrap().second_viewpoint, None);
+        h.flags = proto::flags::SECOND_VIEWPOINT;
+        let e = register_options(&h).unwrap_err();
+        assert!(e.code == StatusCode::InvalidArgument && e.message.contains("needs VIEWPOINT"), "{e:?}");
+        h.flags = proto::flags::ALL;
+        h.second_viewpoint_in_cloud_m[1] = f32::INFINITY;
+        let e = register_options(&h).unwrap_err();
+        assert!(e.message.contains("second_viewpoint_in_cloud_m is not finite"), "{e:?}");
     }
 
     /// A hand and demonstration named by the configuration are the ones
