@@ -489,7 +489,8 @@ fn bad_inputs_get_their_status_and_the_daemon_keeps_serving() {
     assert_eq!(body.registration.viewpoint_cloud_m, camera.map(f64::from));
     // Two cameras' positions: the answer of `graspd register --viewpoint
     // --second-viewpoint` on the same cloud.
-    let co = CloudOptions { viewpoint: Some(FIRST_CAMERA), second_viewpoint: Some(SECOND_CAMERA), ..Default::default() };
+    let co =
+        CloudOptions { viewpoint: Some(FIRST_CAMERA), second_viewpoint: Some(SECOND_CAMERA), ..Default::default() };
     let r = c.register_with("mug", &f.views[0].1, &co, TIMEOUT).unwrap();
     assert_eq!(r.latent, floats(&f.two_cameras["latent"]), "two cameras: latent");
     for (g, e) in r.keypoints.iter().zip(f.two_cameras["keypoints"].as_array().unwrap()) {
