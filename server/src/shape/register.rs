@@ -850,7 +850,7 @@ impl Registrar {
         };
         let hyps = self.hypotheses(&fine_x, up, opts.yaws, starts);
         let coarse_fit = |pose: Pose, sigma2: Option<f64>, iters: usize| {
-            let view = View { normals: coarse_normals, viewpoint, occlusion: None, second };
+            let view = View { normals: coarse_normals, viewpoint, occlusion: None, second, second_occlusion: None };
             em(
                 &coarse_model,
                 view,
@@ -907,8 +907,13 @@ impl Registrar {
         stage.coarse = ms(t_stage);
         let t_stage = Instant::now();
         let prior = opts.fit_latent.then_some(self.space.variances.as_slice());
-        let free_space =
-            viewpoint.and_then(|vp| FreeSpace::new(&subsample(&all, 4000, &mut rng), vp, FREE_SPACE_MARGIN_M));
+        let free_space_points = viewpoint.map(|_| subsample(&all, 4000, &mut rng));
+        let free_space = viewpoint
+            .zip(free_space_points.as_ref())
+            .and_then(|(vp, pts)| FreeSpace::new(pts, vp, FREE_SPACE_MARGIN_M));
+        // The second camera's range image, from the same points.
+        let second_free_space =
+            second.zip(free_space_points.as_ref()).and_then(|(vp, pts)| FreeSpace::new(pts, vp, FREE_SPACE_MARGIN_M));
         let mut best: Option<(f64, Fit)> = None;
         let mut raced: Vec<(f64, Fit)> = Vec::new();
         let mut iterations = 0;
@@ -948,7 +953,7 @@ impl Registrar {
             // into a fit as good as the right one's (measured: most gross failures).
             let fit = em(
                 &models.race,
-                View { normals: &models.race_normals, viewpoint, occlusion: None, second },
+                View { normals: &models.race_normals, viewpoint, occlusion: None, second, second_occlusion: None },
                 &race_pts,
                 pose,
                 vec![0.0; q],
@@ -1072,7 +1077,7 @@ impl Registrar {
             let Some(start) = centre else { return (lead, Some(half_width), 0, challenger) };
             let fit = em(
                 &models.race,
-                View { normals: &models.race_normals, viewpoint, occlusion: None, second },
+                View { normals: &models.race_normals, viewpoint, occlusion: None, second, second_occlusion: None },
                 &race_pts,
                 start,
                 lead.latent.clone(),
@@ -1166,7 +1171,13 @@ impl Registrar {
             let fit_latent = |level: &LatentLevel, x: &ViewPoints, start: &Fit, sigma2: f64, iters: usize| {
                 em(
                     &level.model,
-                    View { normals: &level.normals, viewpoint, occlusion: free_space.as_ref(), second },
+                    View {
+                        normals: &level.normals,
+                        viewpoint,
+                        occlusion: free_space.as_ref(),
+                        second,
+                        second_occlusion: second_free_space.as_ref(),
+                    },
                     x,
                     start.pose,
                     start.latent.clone(),
@@ -1192,7 +1203,13 @@ impl Registrar {
                         let level = &models.polish;
                         surfels::em_surfels(
                             level,
-                            View { normals: &level.normals, viewpoint, occlusion: free_space.as_ref(), second },
+                            View {
+                                normals: &level.normals,
+                                viewpoint,
+                                occlusion: free_space.as_ref(),
+                                second,
+                                second_occlusion: second_free_space.as_ref(),
+                            },
                             polish_pts,
                             &fit,
                             prior,
@@ -1550,7 +1567,7 @@ fn dense_score(
 ) -> (f64, f64) {
     let y: Vec<P3> = level.model.evaluate(&fit.latent).iter().map(|y| fit.pose.apply(y)).collect();
     let second = opts.second_viewpoint.map(Vector3::from);
-    let view = View { normals: &level.normals, viewpoint, occlusion: None, second };
+    let view = View { normals: &level.normals, viewpoint, occlusion: None, second, second_occlusion: None };
     score_posed(estep, &view, &fit.pose, &y, fit.sigma2, free_space, opts, &mut Vec::new())
 }
 

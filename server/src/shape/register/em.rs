@@ -125,6 +125,9 @@ pub(super) struct View<'a> {
     /// two cameras' views): a model point facing it counts as seen, the
     /// first camera's range image notwithstanding.
     pub(super) second: Option<Vector3<f64>>,
+    /// The view's range image from the second camera: a point facing it
+    /// behind a surface it saw is not seen by it.
+    pub(super) second_occlusion: Option<&'a FreeSpace>,
 }
 
 /// Mixing weight of a model point facing away from the camera.
@@ -217,7 +220,9 @@ impl View<'_> {
             // A point facing the second camera is seen by it: +∞, so that
             // the first camera's occlusion test below passes it over.
             Some(vp2) => out.extend(normals_world.zip(y_world).map(|(n, y)| {
-                if facing(vp2, &n, y) > 0.0 {
+                let seen_by_second =
+                    facing(vp2, &n, y) > 0.0 && !self.second_occlusion.is_some_and(|fs| fs.hidden_behind_seen(y, tol));
+                if seen_by_second {
                     f64::INFINITY
                 } else {
                     facing(vp, &n, y)

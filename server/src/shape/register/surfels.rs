@@ -560,7 +560,13 @@ mod tests {
             ));
             let polish = |accelerate_polish: bool, iters: usize| {
                 let opts = RegisterOptions { accelerate_polish, tol: 1e-12, ..Default::default() };
-                let view = View { normals: &level.normals, viewpoint: None, occlusion: None, second: None };
+                let view = View {
+                    normals: &level.normals,
+                    viewpoint: None,
+                    occlusion: None,
+                    second: None,
+                    second_occlusion: None,
+                };
                 let prior = Some(reg.space.variances.as_slice());
                 em_surfels(level, view, &x, &start, prior, None, start.sigma2, &opts, iters, &reg.space.norm).latent
             };

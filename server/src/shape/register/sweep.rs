@@ -75,7 +75,13 @@ impl YawSweep<'_> {
             |model: &LinearModel, normals: &[P3], shift: bool, wanted: &dyn Fn(usize) -> bool| -> Vec<(f64, f64)> {
                 estep.use_model_order(model.block_order(), model.len());
                 let y_model = model.evaluate(&lead.latent);
-                let view = View { normals, viewpoint: self.viewpoint, occlusion: None, second: self.second };
+                let view = View {
+                    normals,
+                    viewpoint: self.viewpoint,
+                    occlusion: None,
+                    second: self.second,
+                    second_occlusion: None,
+                };
                 (0..k)
                     .map(|i| {
                         if !wanted(i) {
