@@ -74,11 +74,13 @@ pub struct RegisterOptions {
     pub viewpoint: Option<[f64; 3]>,
     /// A second camera's origin in the cloud's frame, when the cloud merges
     /// two cameras' views (a robot's second look): model points facing it
-    /// keep their full mixing weight though the first camera (`viewpoint`)
-    /// does not see them. Used only with `viewpoint`; given alone, it is
-    /// taken as `viewpoint`. Measured (eval transfer --second-view, mug
-    /// test, seeds 7 / 11, median / p90 mm): the first camera alone 1.88 /
-    /// 3.68, 2.12 / 4.35; both 1.64 / 3.61, 1.73 / 3.31.
+    /// and not behind a surface it saw (its own range image) keep their full
+    /// mixing weight though the first camera (`viewpoint`) does not see
+    /// them. Used only with `viewpoint`; given alone, it is taken as
+    /// `viewpoint`. Measured (eval transfer --second-view, mug test, seeds 7
+    /// / 11, median / p90 mm): the first camera alone 1.88 / 3.68, 2.12 /
+    /// 4.35; both, facing only 1.64 / 3.61, 1.73 / 3.31; both with the
+    /// second's range image 1.48 / 3.20, 1.63 / 2.96.
     #[serde(default)]
     pub second_viewpoint: Option<[f64; 3]>,
     /// Estimate a uniform scale on top of the latent shape.

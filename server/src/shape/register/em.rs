@@ -122,8 +122,9 @@ pub(super) struct View<'a> {
     /// The view's range image: facing model points behind a seen surface are hidden too.
     pub(super) occlusion: Option<&'a FreeSpace>,
     /// A second camera whose points the view holds too (the cloud merges
-    /// two cameras' views): a model point facing it counts as seen, the
-    /// first camera's range image notwithstanding.
+    /// two cameras' views): a model point facing it, and not behind a
+    /// surface it saw (`second_occlusion`, in the fine stages), counts as
+    /// seen, the first camera's range image notwithstanding.
     pub(super) second: Option<Vector3<f64>>,
     /// The view's range image from the second camera: a point facing it
     /// behind a surface it saw is not seen by it.
