@@ -4,8 +4,8 @@
 //! Off unless `uds_baseline` names a socket path; not meant for production.
 //!
 //! Frames (little-endian, the same byte layouts as the shared-memory messages):
-//! request  = RequestHeader (144 bytes) | u32 point count n | n × (f32 x, f32 y, f32 z);
-//! response = ResponseHeader (160 bytes) | RegisterResponse (632 bytes).
+//! request  = RequestHeader (160 bytes) | u32 point count n | n × (f32 x, f32 y, f32 z);
+//! response = ResponseHeader (160 bytes) | RegisterResponse (768 bytes).
 //! The connection stays open for further requests; a malformed frame closes it.
 
 use super::engine::Status;
