@@ -218,8 +218,9 @@ impl View<'_> {
         };
         match self.second {
             None => out.extend(normals_world.zip(y_world).map(|(n, y)| facing(vp, &n, y))),
-            // A point facing the second camera is seen by it: +∞, so that
-            // the first camera's occlusion test below passes it over.
+            // A point facing the second camera and not behind a surface it
+            // saw is seen by it: +∞, so that the first camera's occlusion
+            // test below passes it over.
             Some(vp2) => out.extend(normals_world.zip(y_world).map(|(n, y)| {
                 let seen_by_second =
                     facing(vp2, &n, y) > 0.0 && !self.second_occlusion.is_some_and(|fs| fs.hidden_behind_seen(y, tol));
