@@ -280,6 +280,7 @@ impl EngineBackend {
         let register = RegisterOptions {
             up,
             viewpoint: opts.viewpoint.map(|u| u.map(f64::from)),
+            second_viewpoint: opts.second_viewpoint.map(|u| u.map(f64::from)),
             support_height,
             seed: opts.seed,
             ..RegisterOptions::default()
