@@ -89,6 +89,10 @@ pub enum EvalCommand {
         /// Tell the registration the table's height (the scan rests on it).
         #[arg(long)]
         known_table: bool,
+        /// Merge each view with a second camera's, a quarter turn round the
+        /// scan (with --known-viewpoint the registration is told both).
+        #[arg(long)]
+        second_view: bool,
         /// Registration options as a JSON object laid over the defaults (as for `eval transfer`).
         #[arg(long)]
         register_options: Option<String>,
@@ -101,7 +105,17 @@ pub enum EvalCommand {
 
 pub fn run(cmd: EvalCommand) -> CliResult {
     match cmd {
-        EvalCommand::Ycb { category, views, data, seed, known_viewpoint, known_table, register_options, json } => {
+        EvalCommand::Ycb {
+            category,
+            views,
+            data,
+            seed,
+            known_viewpoint,
+            known_table,
+            second_view,
+            register_options,
+            json,
+        } => {
             let register = match register_options {
                 Some(j) => super::overlay_json(graspd::shape::RegisterOptions::default(), &j, "--register-options")?,
                 None => graspd::shape::RegisterOptions::default(),
@@ -119,7 +133,8 @@ pub fn run(cmd: EvalCommand) -> CliResult {
                     continue;
                 }
                 let registrar = Registrar::new(builtin::load_or_build(c, &spaces_dir(), |_, _| {})?);
-                let protocol = graspd::eval::ycb::YcbProtocol { views, seed, known_viewpoint, known_table };
+                let protocol =
+                    graspd::eval::ycb::YcbProtocol { views, seed, known_viewpoint, known_table, second_view };
                 reports.push(graspd::eval::ycb::evaluate(&registrar, c, &path, protocol, &register)?);
             }
             if json {
@@ -127,8 +142,8 @@ pub fn run(cmd: EvalCommand) -> CliResult {
             } else {
                 for r in &reports {
                     println!(
-                        "{} ({} viewpoint{}): chamfer median {:.1} mm (p90 {:.1}), inliers median {:.2}, confident {:.0}%, scale median {:.2}, fit p50 {:.1} ms",
-                        r.category, if r.known_viewpoint { "known" } else { "estimated" }, if r.known_table { ", table known" } else { "" }, r.chamfer_mm.median, r.chamfer_mm.p90, r.inlier_fraction.median, r.confident_fraction * 100.0, r.scale.median, r.fit_ms.median
+                        "{} ({} viewpoint{}{}): chamfer median {:.1} mm (p90 {:.1}), inliers median {:.2}, confident {:.0}%, scale median {:.2}, fit p50 {:.1} ms",
+                        r.category, if r.known_viewpoint { "known" } else { "estimated" }, if r.known_table { ", table known" } else { "" }, if r.second_view { ", two views" } else { "" }, r.chamfer_mm.median, r.chamfer_mm.p90, r.inlier_fraction.median, r.confident_fraction * 100.0, r.scale.median, r.fit_ms.median
                     );
                 }
             }

@@ -32,6 +32,8 @@ pub struct YcbReport {
     pub known_viewpoint: bool,
     /// The registration was told the table's height (the scan resting on it).
     pub known_table: bool,
+    /// Each view merged with a second camera's, a quarter turn round the scan.
+    pub second_view: bool,
     pub chamfer_mm: Percentiles,
     pub inlier_fraction: Percentiles,
     pub confident_fraction: f64,
@@ -49,6 +51,10 @@ pub struct YcbProtocol {
     pub known_viewpoint: bool,
     /// Tell it the table's height (the scan resting on it).
     pub known_table: bool,
+    /// Merge each view with a second camera's, a quarter turn round the
+    /// scan and 25° up (as `eval transfer --second-view`); with
+    /// `known_viewpoint` the registration is told both cameras.
+    pub second_view: bool,
 }
 
 pub fn evaluate(
@@ -58,7 +64,7 @@ pub fn evaluate(
     protocol: YcbProtocol,
     base: &RegisterOptions,
 ) -> Result<YcbReport, Box<dyn std::error::Error>> {
-    let YcbProtocol { views, seed, known_viewpoint, known_table } = protocol;
+    let YcbProtocol { views, seed, known_viewpoint, known_table, second_view } = protocol;
     let mesh = crate::io::read_mesh(mesh_path)?.mesh;
     let truth = to_p3(&sample_points(&mesh, 4000, 99)?);
     let (lo, _) = mesh.aabb().ok_or("empty mesh")?;
@@ -70,11 +76,19 @@ pub fn evaluate(
         let pose = standard_view(view, views, centre, mesh.diagonal(), Intrinsics::default())?;
         let cam =
             DepthCamera { intrinsics: Intrinsics::default(), world_from_camera: pose, noise: DepthNoise::default() };
-        let cloud = cam.capture(&scene, seed + view as u64)?.points_world;
+        let mut cloud = cam.capture(&scene, seed + view as u64)?.points_world;
         let viewpoint = known_viewpoint.then(|| pose.translation.vector.into());
+        let mut second_viewpoint = None;
+        if second_view {
+            // Azimuth index 4·view + views of 4·views: a quarter turn on.
+            let pose = standard_view(4 * view + views, 4 * views, centre, mesh.diagonal(), Intrinsics::default())?;
+            let cam = DepthCamera { world_from_camera: pose, ..cam };
+            cloud.extend(cam.capture(&scene, (seed + view as u64) ^ 1)?.points_world);
+            second_viewpoint = known_viewpoint.then(|| pose.translation.vector.into());
+        }
         let support_height = known_table.then_some(lo.z).or(base.support_height);
-        let reg = registrar
-            .register(&cloud, &RegisterOptions { seed: seed + view as u64, viewpoint, support_height, ..*base })?;
+        let opts = RegisterOptions { seed: seed + view as u64, viewpoint, second_viewpoint, support_height, ..*base };
+        let reg = registrar.register(&cloud, &opts)?;
         chamfer.push(chamfer_mm(&to_p3(&registrar.completed_shape(&reg)), &truth));
         inliers.push(reg.fit.inlier_fraction);
         scale.push(reg.scale);
@@ -87,6 +101,7 @@ pub fn evaluate(
         views,
         known_viewpoint,
         known_table,
+        second_view,
         chamfer_mm: percentiles(chamfer),
         inlier_fraction: percentiles(inliers),
         confident_fraction: confident as f64 / views.max(1) as f64,
