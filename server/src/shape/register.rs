@@ -1162,6 +1162,14 @@ impl Registrar {
         let fine_pts = ViewPoints::new(&fine_x);
         // The latent fits from a raced pose: refine, then polish. (fit, EM
         // iterations, refine ms, polish ms)
+        // The view of the latent fits: every camera's range image.
+        let fine_view = View {
+            normals: &[],
+            viewpoint,
+            occlusion: free_space.as_ref(),
+            second,
+            second_occlusion: second_free_space.as_ref(),
+        };
         let complete = |start: &Fit| -> (Fit, usize, f64, f64) {
             let t_stage = Instant::now();
             // The support holds the latent fits only: in the coarse stage and the
@@ -1173,13 +1181,7 @@ impl Registrar {
             let fit_latent = |level: &LatentLevel, x: &ViewPoints, start: &Fit, sigma2: f64, iters: usize| {
                 em(
                     &level.model,
-                    View {
-                        normals: &level.normals,
-                        viewpoint,
-                        occlusion: free_space.as_ref(),
-                        second,
-                        second_occlusion: second_free_space.as_ref(),
-                    },
+                    View { normals: &level.normals, ..fine_view },
                     x,
                     start.pose,
                     start.latent.clone(),
@@ -1205,13 +1207,7 @@ impl Registrar {
                         let level = &models.polish;
                         surfels::em_surfels(
                             level,
-                            View {
-                                normals: &level.normals,
-                                viewpoint,
-                                occlusion: free_space.as_ref(),
-                                second,
-                                second_occlusion: second_free_space.as_ref(),
-                            },
+                            View { normals: &level.normals, ..fine_view },
                             polish_pts,
                             &fit,
                             prior,
