@@ -18,7 +18,7 @@
 //! semantic keypoints and still move the fingers' targets.
 
 use super::ambiguity;
-use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
+use crate::geometry::camera::{quarter_turn_on, standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
 use crate::geometry::{sample_points, PointTree};
 use crate::shape::cpd::{self, EmOptions, NonRigidOptions};
 use crate::shape::estep::P3;
@@ -465,8 +465,7 @@ impl Placement {
     }
 
     /// The second camera of `--second-view` for view `view` of `views`: a
-    /// quarter turn on round the tool (azimuth index 4·view + views of
-    /// 4·views), 25° up.
+    /// quarter turn on round the tool, 25° up (`quarter_turn_on`).
     pub fn second_view(
         &self,
         mesh: &crate::geometry::TriMesh,
@@ -474,7 +473,8 @@ impl Placement {
         views: usize,
         noise: DepthNoise,
     ) -> Option<PlacedView> {
-        self.place(mesh, 4 * view + views, 4 * views, noise)
+        let (k, count) = quarter_turn_on(view, views);
+        self.place(mesh, k, count, noise)
     }
 }
 

@@ -4,7 +4,7 @@
 //! of the completed shape to the scan's full surface and the fit quality.
 
 use super::transfer::{chamfer_mm, percentiles, Percentiles};
-use crate::geometry::camera::{standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
+use crate::geometry::camera::{quarter_turn_on, standard_view, DepthCamera, DepthNoise, Intrinsics, Scene};
 use crate::geometry::sample_points;
 use crate::shape::cpd::to_p3;
 use crate::shape::{RegisterOptions, Registrar};
@@ -80,8 +80,8 @@ pub fn evaluate(
         let viewpoint = known_viewpoint.then(|| pose.translation.vector.into());
         let mut second_viewpoint = None;
         if second_view {
-            // Azimuth index 4·view + views of 4·views: a quarter turn on.
-            let pose = standard_view(4 * view + views, 4 * views, centre, mesh.diagonal(), Intrinsics::default())?;
+            let (k, count) = quarter_turn_on(view, views);
+            let pose = standard_view(k, count, centre, mesh.diagonal(), Intrinsics::default())?;
             let cam = DepthCamera { world_from_camera: pose, ..cam };
             cloud.extend(cam.capture(&scene, (seed + view as u64) ^ 1)?.points_world);
             second_viewpoint = known_viewpoint.then(|| pose.translation.vector.into());

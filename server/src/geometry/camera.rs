@@ -292,6 +292,14 @@ pub fn standard_view(
     look_at(target + dir * distance, target, Vector3::z())
 }
 
+/// The standard view a quarter turn on round the object from view `k` of
+/// `count`, as [`standard_view`]'s `(k, count)`: azimuth index 4k + count
+/// of 4·count, at 25° up (a second camera's look at what view `k` shows
+/// from the side).
+pub fn quarter_turn_on(k: usize, count: usize) -> (usize, usize) {
+    (4 * k + count, 4 * count)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
