@@ -10,7 +10,7 @@
 #[path = "common/views.rs"]
 mod views;
 
-use graspd::shape::register::farthest_points;
+use graspd::geometry::farthest_point_order;
 use graspd::shape::{builtin, RegisterOptions, Registrar};
 use graspd::tools::Category;
 use serde_json::json;
@@ -35,7 +35,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // ℓ_j is N(0, variances_j), as in graspd's own fit.
     let canonical: Vec<[f64; 3]> = space.surface.iter().map(|p| norm.forward(p)).collect();
     let points: Vec<[f64; 3]> =
-        farthest_points(&canonical, MODEL_POINTS).into_iter().map(|i| space.surface[i]).collect();
+        farthest_point_order(&canonical, MODEL_POINTS).into_iter().map(|i| space.surface[i]).collect();
     let metres = |z: &[[f64; 3]]| {
         let m = space.linear_model(z);
         let mean: Vec<[f64; 3]> = m.base.iter().map(|p| norm.inverse(p)).collect();

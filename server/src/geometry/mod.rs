@@ -2,11 +2,13 @@
 //! surface sampling, the virtual depth camera.
 
 pub mod camera;
+pub mod farthest;
 pub mod mesh;
 pub mod primitives;
 pub mod sample;
 
 pub use camera::{DepthCamera, DepthNoise, Intrinsics, PartialView, Scene};
+pub use farthest::farthest_point_order;
 pub use mesh::{Topology, TriMesh};
 pub use sample::{sample_points, sample_points_even, SurfacePoint, SurfaceSampler};
 

@@ -139,24 +139,9 @@ pub fn to_parry(mesh: &TriMesh) -> Option<parry3d::shape::TriMesh> {
 /// randomly sampled copies of one surface drift apart along it where their
 /// densities happen to differ; evenly spread samples remove that drift.
 pub fn sample_points_even(mesh: &TriMesh, n: usize, seed: u64) -> Result<Vec<Point3<f64>>, SampleError> {
-    let dense = sample_points(mesh, n.saturating_mul(8).max(1), seed)?;
-    let mut d = vec![f64::INFINITY; dense.len()];
-    let mut out = Vec::with_capacity(n);
-    let mut cur = 0;
-    for _ in 0..n.min(dense.len()) {
-        out.push(dense[cur]);
-        let c = dense[cur];
-        let mut best = (0.0, cur);
-        for (i, p) in dense.iter().enumerate() {
-            let di = (p - c).norm_squared().min(d[i]);
-            d[i] = di;
-            if di > best.0 {
-                best = (di, i);
-            }
-        }
-        cur = best.1;
-    }
-    Ok(out)
+    let dense: Vec<[f64; 3]> =
+        sample_points(mesh, n.saturating_mul(8).max(1), seed)?.iter().map(|p| p.coords.into()).collect();
+    Ok(super::farthest_point_order(&dense, n).into_iter().map(|i| Point3::from(dense[i])).collect())
 }
 
 /// Convenience: `n` sample positions only.

@@ -665,7 +665,7 @@ impl Models {
         let surface = model(&space.surface);
         // Model subsets chosen on the canonical (not the mean) so both model kinds use the same points.
         let canonical: Vec<P3> = space.surface.iter().map(|p| space.norm.forward(p)).collect();
-        let polish_idx = farthest_points(&canonical, POLISH_MODEL_POINTS);
+        let polish_idx = crate::geometry::farthest_point_order(&canonical, POLISH_MODEL_POINTS);
         // Farthest-point orders nest: each level's points are the first of the next's.
         let fine_idx = &polish_idx[..FINE_MODEL_POINTS.min(polish_idx.len())];
         let race_idx = &polish_idx[..200.min(polish_idx.len())];
@@ -1744,30 +1744,4 @@ fn up_direction(opts: &RegisterOptions) -> Option<Vector3<f64>> {
 fn trace_enabled() -> bool {
     static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     *ON.get_or_init(|| std::env::var_os("GRASPD_REGISTER_TRACE").is_some())
-}
-
-/// Farthest-point order of the first `n` points (deterministic: starts at index 0),
-/// so any prefix is an even cover of the surface.
-pub fn farthest_points(x: &[P3], n: usize) -> Vec<usize> {
-    let n = n.min(x.len());
-    if n == 0 {
-        return Vec::new();
-    }
-    let mut d = vec![f64::INFINITY; x.len()];
-    let mut out = Vec::with_capacity(n);
-    let mut cur = 0;
-    for _ in 0..n {
-        out.push(cur);
-        let c = x[cur];
-        let mut best = (0.0, cur);
-        for (i, p) in x.iter().enumerate() {
-            let di = dist2(p, &c).min(d[i]);
-            d[i] = di;
-            if di > best.0 {
-                best = (di, i);
-            }
-        }
-        cur = best.1;
-    }
-    out
 }
