@@ -386,29 +386,62 @@ impl DeformationField {
     /// (measured: a thumb keypoint beside a hammer handle moved 62 mm while the
     /// palm moved 12).
     pub fn jacobian_determinants(&self, z: &[P3]) -> Vec<f64> {
-        use nalgebra::{Matrix3, Vector3};
-        let k = -0.5 / (self.beta * self.beta);
-        z.iter()
-            .map(|p| {
-                let zn = self.norm.forward(p);
-                let mut j = Matrix3::<f64>::identity();
-                for (i, c) in self.centres.iter().enumerate() {
-                    let d = Vector3::new(zn[0] - c[0], zn[1] - c[1], zn[2] - c[2]);
-                    let g = (k * d.norm_squared()).exp();
-                    if g < 1e-12 {
-                        continue;
-                    }
-                    let w = Vector3::new(self.weights[(i, 0)], self.weights[(i, 1)], self.weights[(i, 2)]);
-                    j += (2.0 * k * g) * w * d.transpose();
-                }
+        JacobianKernel::new(self.norm, &self.centres, self.beta, z).determinants(&self.weights)
+    }
+}
+
+/// [`DeformationField::jacobian_determinants`] at fixed points for any
+/// field on the same centres and width. A shape-space build checks each
+/// training fit and each training latent for folds on the same surface
+/// samples: the Gaussians, most of the cost (3,000 × 406 exponentials a
+/// check), are computed here once, and each field's determinants are then
+/// one product with its weights.
+pub struct JacobianKernel {
+    /// The points, normalised.
+    zn: Vec<P3>,
+    centres: Vec<P3>,
+    /// g_ij = exp(−‖z_i − c_j‖² / 2β²).
+    g: Mat<f64>,
+    beta: f64,
+}
+
+impl JacobianKernel {
+    /// The kernel at points `z` (caller's units) of fields on `centres`
+    /// (normalised by `norm`) with width `beta` (normalised units).
+    pub fn new(norm: Normalization, centres: &[P3], beta: f64, z: &[P3]) -> Self {
+        let zn: Vec<P3> = z.iter().map(|p| norm.forward(p)).collect();
+        let g = gaussian(&zn, centres, beta);
+        Self { zn, centres: centres.to_vec(), g, beta }
+    }
+
+    /// det J at each point for the field with kernel weights `weights` (M×3).
+    /// J_i = I − Σ_j g_ij w_j (z_i − c_j)ᵀ / β² = I − (a_i z_iᵀ − B_i) / β²
+    /// with a = G·W and B_i = Σ_j g_ij w_j c_jᵀ: one N×M by M×12 product.
+    pub fn determinants(&self, weights: &Mat<f64>) -> Vec<f64> {
+        let m = self.centres.len();
+        let rhs = Mat::from_fn(m, 12, |j, col| match col {
+            0..3 => weights[(j, col)],
+            _ => weights[(j, (col - 3) / 3)] * self.centres[j][(col - 3) % 3],
+        });
+        let prod = &self.g * &rhs;
+        clear_upper_state();
+        let s = -1.0 / (self.beta * self.beta);
+        self.zn
+            .iter()
+            .enumerate()
+            .map(|(i, z)| {
+                let j = Matrix3::from_fn(|r, c| {
+                    let delta = if r == c { 1.0 } else { 0.0 };
+                    delta + s * (prod[(i, r)] * z[c] - prod[(i, 3 + 3 * r + c)])
+                });
                 j.determinant()
             })
             .collect()
     }
 
-    /// The smallest Jacobian determinant over `z` (+∞ when empty).
-    pub fn min_jacobian_determinant(&self, z: &[P3]) -> f64 {
-        self.jacobian_determinants(z).into_iter().fold(f64::INFINITY, f64::min)
+    /// The smallest of [`Self::determinants`] (+∞ with no points).
+    pub fn min_determinant(&self, weights: &Mat<f64>) -> f64 {
+        self.determinants(weights).into_iter().fold(f64::INFINITY, f64::min)
     }
 }
 

@@ -248,6 +248,7 @@ impl ShapeSpace {
         let kernel = LowRankKernel::new(&y0, opts.cpd.beta, opts.cpd.max_rank, opts.cpd.rank_tol);
         let c_pts = cpd::to_points(&c);
         let m = c.len();
+        let folds = cpd::JacobianKernel::new(norm, &y0, opts.cpd.beta, &surface);
         // Each instance independently (in parallel: the fits share only the kernel factor).
         let done = std::sync::atomic::AtomicUsize::new(0);
         // Per instance: flattened W, flattened G·W (the displacements), residual σ in mm, stiffened.
@@ -293,7 +294,7 @@ impl ShapeSpace {
                 let mut res = fit(&cpd_opts)?;
                 let mut stiffened = false;
                 for _ in 0..FOLD_REFITS {
-                    let det = res.field.min_jacobian_determinant(&surface);
+                    let det = folds.min_determinant(&res.field.weights);
                     if det > FOLD_MARGIN {
                         break;
                     }
@@ -424,7 +425,8 @@ impl ShapeSpace {
     /// The smallest Jacobian determinant over the canonical surface samples
     /// for each training latent (see [`Self::jacobian_determinants`]).
     pub fn training_fold_margins(&self) -> Vec<f64> {
-        self.train_latents.iter().map(|l| self.field(l).min_jacobian_determinant(&self.surface)).collect()
+        let folds = cpd::JacobianKernel::new(self.norm, &self.centres, self.beta, &self.surface);
+        self.train_latents.iter().map(|l| folds.min_determinant(&self.weights(l))).collect()
     }
 
     /// As `deform`, for points that may lie off the surface (a palm above a
