@@ -58,7 +58,7 @@ impl Inputs {
 }
 
 /// The build options of a built-in category's space: the defaults, with the
-/// modes its keypoints gain from. Of the 19 modes 20 draws gave, the drill
+/// modes its keypoints gain from. Of the 19 modes 20 draws give, the drill
 /// keeps 12 and the mug and hammer 9: `eval transfer --views 12`, test median
 /// / p90 mm, means of seeds 7 / 11 / 23 (in brackets fresh seeds 31 / 47 /
 /// 59), 12 -> 9 modes: mug 1.70 / 8.73 -> 1.72 / 8.68 (1.75 / 12.06 -> 1.76 /

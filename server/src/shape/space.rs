@@ -134,8 +134,6 @@ impl Default for BuildOptions {
             // Registration p50 (bench_register, known viewpoint) mug 6.45 /
             // 6.79 / 7.4 ms, drill 5.4 / 5.7 / 6.2 (10 draws, 9 modes: 6.67,
             // 5.2): modes past 12 cost 0.6 ms for what only the drill gains.
-            // With 40 draws (session 52) 12 modes still cost the mug: test
-            // p90 8.39 -> 9.04 mm (9 -> 12 modes, seeds 7 / 11 / 23).
             explained: 0.9999,
             max_modes: 12,
             prealign: false,

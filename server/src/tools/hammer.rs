@@ -211,10 +211,7 @@ impl ToolModel for HammerParams {
     fn assign_slot(&mut self, split: Split, index: usize) {
         let peen = match split {
             Split::Canonical => false,
-            // Shape-space-only slots (index ≥ N_TRAIN) repeat the training
-            // tools' pattern: three in ten heads peen, as there (session 52:
-            // hammer test p90 3.33 -> 3.15 mm, seeds 7 / 11 / 23).
-            Split::Train => PEEN_TRAIN.contains(&(index % super::N_TRAIN)),
+            Split::Train => PEEN_TRAIN.contains(&index),
             Split::Test => PEEN_TEST.contains(&index),
         };
         self.variant = if peen { HeadVariant::Peen } else { HeadVariant::Claw };

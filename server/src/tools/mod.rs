@@ -43,7 +43,7 @@ pub const N_TRAIN: usize = 10;
 pub const N_TEST: usize = 3;
 /// Draws per category that only teach the shape space (see
 /// [`shape_space_instances`]).
-pub const N_SPACE_ONLY: usize = 30;
+pub const N_SPACE_ONLY: usize = 10;
 /// Smallest RMS distance, in parameters normalised to their sampling ranges,
 /// between a test instance and any training instance. Two independent
 /// uniform draws are ≈0.41 apart on average; 0.2 rules out near-copies.
@@ -352,20 +352,6 @@ fn draw_space_only<T: ToolModel>(wrap: fn(T) -> ToolParams, tests: &[Vec<f64>]) 
 /// 12`, seeds 7 / 11 / 23, test median / p90 mm, the modes of
 /// `shape::builtin::options`) mug 1.83 / 9.14 -> 1.72 / 8.68, drill 2.06 /
 /// 4.96 -> 1.63 / 4.19, hammer 1.66 / 4.34 -> 1.47 / 3.37.
-///
-/// 40 draws (30 here, session 52): the handles' joints, which 20 draws left
-/// 4.5-5.5 mm off on whole test surfaces (`--full-surface --views 4 --seed
-/// 11`: mug p90 4.50 -> 3.22 mm), and on partial views, test median / p90,
-/// means of seeds 7 / 11 / 23 (fresh seeds 31 / 47 / 59 in brackets): mug
-/// 1.72 / 8.68 -> 1.66 / 8.39 (1.72 / 10.83 -> 1.65 / 11.47; the p90 is the
-/// views that hide the handle; over the six seeds the views that do not
-/// hide it 3.23 -> 2.98), drill 1.63 / 4.19 -> 1.58 / 3.82 (1.62 / 4.01 ->
-/// 1.55 / 3.66), hammer 1.47 / 3.39 -> 1.43 / 3.15 (1.34 / 3.49 -> 1.26 /
-/// 3.11); with a second view (`--second-view`) mug 1.55 / 3.16 -> 1.45 /
-/// 2.85. The training tools, now a quarter of the space's draws, about the
-/// same: mug 1.75 / 12.5 -> 1.75 / 14.0, drill 1.21 / 2.85 -> 1.22 / 2.91,
-/// hammer 1.31 / 3.29 -> 1.30 / 3.37. 60 draws gain nothing more (mug test
-/// 1.66 / 10.09 over the six seeds, against 1.65 / 9.93 at 40).
 pub fn shape_space_instances(category: Category) -> Result<Vec<Instance>, ToolsError> {
     let tests: Vec<Vec<f64>> =
         family_params(category)?.into_iter().filter(|s| s.split == Split::Test).map(|s| s.params.features()).collect();
