@@ -5,11 +5,12 @@
 //! deterministically (kiddo answers nearest-neighbour queries, not this).
 //! The plain greedy costs O(N·n): every pick updates every point's distance
 //! to the picks, which took 40 % of a shape-space build (1,600 picks from
-//! 12,800 samples an instance; measured on a build from 40 draws). Here the points are cut into
-//! leaves of at most [`LEAF`] points (median splits along the widest axis),
-//! and a pick skips each leaf whose box lies at least as far from it as
-//! the leaf's farthest point already is from the picks: none of its
-//! distances can shrink. Late picks touch only the leaves around them.
+//! 12,800 samples an instance; measured on a build from 40 draws). Here the
+//! points are cut into leaves of at most [`LEAF`] points (median splits
+//! along the widest axis), and a pick skips each leaf whose box lies at
+//! least as far from it as the leaf's farthest point already is from the
+//! picks: none of its distances can shrink. Late picks touch only the
+//! leaves around them.
 //!
 //! The order is the plain greedy's to the bit: the same distance expression
 //! (so a box's computed distance never exceeds a point's inside it: IEEE
