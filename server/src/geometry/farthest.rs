@@ -6,7 +6,7 @@
 //! The plain greedy costs O(N·n): every pick updates every point's distance
 //! to the picks, which took 40 % of a shape-space build (1,600 picks from
 //! 12,800 samples an instance; measured on a build from 40 draws). Here the
-//! points are cut into leaves of at most [`LEAF`] points (median splits
+//! points are cut into leaves of at most 32 points (median splits
 //! along the widest axis), and a pick skips each leaf whose box lies at
 //! least as far from it as the leaf's farthest point already is from the
 //! picks: none of its distances can shrink. Late picks touch only the
@@ -148,7 +148,7 @@ impl Leaves {
 }
 
 /// Cuts `index` (the points at `offset..` of the leaf order) at the median
-/// of the widest axis until each part holds at most [`LEAF`] points.
+/// of the widest axis until each part holds at most `LEAF` points.
 fn split(points: &[P3], index: &mut [usize], offset: usize, out: &mut Vec<std::ops::Range<usize>>) {
     if index.len() <= LEAF {
         out.push(offset..offset + index.len());
