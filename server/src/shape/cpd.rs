@@ -386,7 +386,10 @@ impl DeformationField {
     /// (measured: a thumb keypoint beside a hammer handle moved 62 mm while the
     /// palm moved 12).
     pub fn jacobian_determinants(&self, z: &[P3]) -> Vec<f64> {
-        JacobianKernel::new(self.norm, &self.centres, self.beta, z).determinants(&self.weights)
+        // In chunks: the kernel holds M Gaussians a point (3 MB a chunk at M = 406).
+        z.chunks(1024)
+            .flat_map(|c| JacobianKernel::new(self.norm, &self.centres, self.beta, c).determinants(&self.weights))
+            .collect()
     }
 }
 

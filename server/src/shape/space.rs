@@ -249,7 +249,8 @@ impl ShapeSpace {
         let c_pts = cpd::to_points(&c);
         let m = c.len();
         let folds = cpd::JacobianKernel::new(norm, &y0, opts.cpd.beta, &surface);
-        // Each instance independently (in parallel: the fits share only the kernel factor).
+        // Each instance independently (in parallel: the fits share only the kernel factor
+        // and the fold check's Gaussians).
         let done = std::sync::atomic::AtomicUsize::new(0);
         // Per instance: flattened W, flattened G·W (the displacements), residual σ in mm, stiffened.
         type InstanceFit = Result<(Vec<f64>, Vec<f64>, f64, bool), SpaceError>;
