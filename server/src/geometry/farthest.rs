@@ -95,13 +95,7 @@ impl Leaves {
         for r in ranges {
             // Ascending indices within a leaf: its first maximum is the lowest index.
             index[r.clone()].sort_unstable();
-            let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-            for &i in &index[r.clone()] {
-                for a in 0..3 {
-                    lo[a] = lo[a].min(points[i][a]);
-                    hi[a] = hi[a].max(points[i][a]);
-                }
-            }
+            let (lo, hi) = bounds(points, &index[r.clone()]);
             leaves.push(Leaf { range: r, lo, hi, farthest: f64::INFINITY, at: None });
         }
         Self { points: index.iter().map(|&i| points[i]).collect(), d: vec![f64::INFINITY; index.len()], index, leaves }
@@ -147,6 +141,18 @@ impl Leaves {
     }
 }
 
+/// The box of the points `index` names.
+fn bounds(points: &[P3], index: &[usize]) -> (P3, P3) {
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for &i in index {
+        for a in 0..3 {
+            lo[a] = lo[a].min(points[i][a]);
+            hi[a] = hi[a].max(points[i][a]);
+        }
+    }
+    (lo, hi)
+}
+
 /// Cuts `index` (the points at `offset..` of the leaf order) at the median
 /// of the widest axis until each part holds at most `LEAF` points.
 fn split(points: &[P3], index: &mut [usize], offset: usize, out: &mut Vec<std::ops::Range<usize>>) {
@@ -154,13 +160,7 @@ fn split(points: &[P3], index: &mut [usize], offset: usize, out: &mut Vec<std::o
         out.push(offset..offset + index.len());
         return;
     }
-    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-    for &i in index.iter() {
-        for a in 0..3 {
-            lo[a] = lo[a].min(points[i][a]);
-            hi[a] = hi[a].max(points[i][a]);
-        }
-    }
+    let (lo, hi) = bounds(points, index);
     let axis = (0..3).max_by(|&a, &b| (hi[a] - lo[a]).total_cmp(&(hi[b] - lo[b]))).unwrap_or(0);
     let mid = index.len() / 2;
     index.select_nth_unstable_by(mid, |&a, &b| points[a][axis].total_cmp(&points[b][axis]));
